@@ -1,0 +1,188 @@
+"""Turntable kinematics of a test plan: body orientation, angular rate and specific force at any time.
+
+A rate step turns the IMU about the table axis: C_b^l(t) = R(a, r (t - t_k)) C_k (seed 000 eq. 3-5).
+Between steps with the same mount the table rate ramps linearly; a change of mount (multi-position tests,
+a new rate axis) is made as ramp-down, a smooth rotation (raised-cosine angle profile), ramp-up, one third
+of the gap each. ``consistent_plan_orientations`` builds the step-start orientations that make a plan
+follow exactly these kinematics (what the simulator writes into its manifests).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from assets_lib.earth import earth_rate_level, specific_force_level
+
+_SAME_MOUNT_TOL_RAD = 1e-6
+
+
+def rotation_about(axis: np.ndarray, angle_rad: np.ndarray | float) -> np.ndarray:
+    """Rodrigues' formula: DCM(s) of a right-handed rotation by ``angle_rad`` about unit ``axis`` -> (..., 3, 3)."""
+    u = np.asarray(axis, dtype=float)
+    th = np.asarray(angle_rad, dtype=float)[..., None, None]
+    ux = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
+    return np.cos(th) * np.eye(3) + (1 - np.cos(th)) * np.outer(u, u) + np.sin(th) * ux
+
+
+def _about_axis_angle(delta: np.ndarray, axis: np.ndarray) -> float | None:
+    """Angle of ``delta`` if it is a rotation about ``axis`` (else None)."""
+    rv = Rotation.from_matrix(delta).as_rotvec()
+    ang = np.linalg.norm(rv)
+    if ang < _SAME_MOUNT_TOL_RAD:
+        return 0.0
+    if np.linalg.norm(np.cross(rv / ang, axis)) < 1e-6:
+        return float(np.dot(rv, axis))
+    return None
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Sampled table motion: C_b^l (n,3,3), level-frame motion rate (n,3) [rad/s], table angle/rate, step index."""
+
+    t_s: np.ndarray
+    c_b2l: np.ndarray
+    omega_motion_level_radps: np.ndarray
+    table_angle_rad: np.ndarray
+    table_rate_radps: np.ndarray
+    step_index: np.ndarray
+
+
+def _wrap_equal(a: float, b: float) -> bool:
+    return abs((a - b + np.pi) % (2 * np.pi) - np.pi) < 1e-6
+
+
+def trajectory(plan, t_s: np.ndarray) -> Trajectory:
+    """Evaluate the plan's kinematics at times ``t_s`` (IMU clock, seconds from the first sample)."""
+    t = np.asarray(t_s, dtype=float)
+    n = t.size
+    axis = np.asarray(plan.table_axis_level, dtype=float)
+    steps = plan.steps
+    C = np.empty((n, 3, 3))
+    w = np.zeros((n, 3))
+    ang = np.zeros(n)
+    rate = np.zeros(n)
+    idx = np.full(n, -1, dtype=np.int64)
+    theta0 = 0.0  # table angle at the start of the current piece
+
+    def rate_piece(mask, tstart, r0, r1, dur, cstart, th_start):
+        tau = t[mask] - tstart
+        rr = r0 + (r1 - r0) * (tau / dur if dur > 0 else 0.0)
+        dth = r0 * tau + 0.5 * (r1 - r0) * tau**2 / (dur if dur > 0 else 1.0)
+        C[mask] = rotation_about(axis, dth) @ cstart
+        w[mask] = rr[:, None] * axis
+        ang[mask] = th_start + dth
+        rate[mask] = rr
+
+    def rot_piece(mask, tstart, dur, c_from, c_to, th):
+        rv = Rotation.from_matrix(c_to @ c_from.T).as_rotvec()
+        phi = np.linalg.norm(rv)
+        u = rv / phi if phi > 0 else axis
+        tau = np.clip(t[mask] - tstart, 0.0, dur)
+        s = 0.5 * (1 - np.cos(np.pi * tau / dur))
+        sd = 0.5 * np.pi / dur * np.sin(np.pi * tau / dur)
+        C[mask] = rotation_about(u, phi * s) @ c_from
+        w[mask] = (phi * sd)[:, None] * u
+        ang[mask] = th
+        rate[mask] = 0.0
+
+    # before the first step: spin up from rest (rate steps) or rest
+    s0 = steps[0]
+    c0 = np.asarray(s0.orientation_b2l)
+    r0 = np.radians(s0.table_rate_dps)
+    m = t < s0.start_s
+    if m.any():
+        lead = s0.start_s
+        # ramp 0 -> r0 over the lead time ending at C0
+        cstart = rotation_about(axis, -0.5 * r0 * lead) @ c0
+        rate_piece(m, 0.0, 0.0, r0, lead, cstart, -0.5 * r0 * lead)
+        theta0 = 0.0
+    for k, s in enumerate(steps):
+        ck = np.asarray(s.orientation_b2l)
+        rk = np.radians(s.table_rate_dps)
+        m = (t >= s.start_s) & (t < s.end_s)
+        rate_piece(m, s.start_s, rk, rk, s.duration_s, ck, theta0)
+        idx[m] = k
+        c_end = rotation_about(axis, rk * s.duration_s) @ ck
+        th_end = theta0 + rk * s.duration_s
+        if k + 1 < len(steps):
+            nxt = steps[k + 1]
+            cn = np.asarray(nxt.orientation_b2l)
+            rn = np.radians(nxt.table_rate_dps)
+            gap = nxt.start_s - s.end_s
+            m = (t >= s.end_s) & (t < nxt.start_s)
+            d_ang = _about_axis_angle(cn @ c_end.T, axis)
+            ramp_ang = 0.5 * (rk + rn) * gap
+            if d_ang is not None and _wrap_equal(d_ang, ramp_ang):
+                rate_piece(m, s.end_s, rk, rn, gap, c_end, th_end)
+                theta0 = th_end + ramp_ang
+            else:
+                g3 = gap / 3.0
+                c_a = rotation_about(axis, rk * g3 / 2) @ c_end
+                c_b = rotation_about(axis, -rn * g3 / 2) @ cn
+                m1 = m & (t < s.end_s + g3)
+                m2 = m & (t >= s.end_s + g3) & (t < s.end_s + 2 * g3)
+                m3 = m & (t >= s.end_s + 2 * g3)
+                rate_piece(m1, s.end_s, rk, 0.0, g3, c_end, th_end)
+                th_a = th_end + rk * g3 / 2
+                rot_piece(m2, s.end_s + g3, g3, c_a, c_b, th_a)
+                rate_piece(m3, s.end_s + 2 * g3, 0.0, rn, g3, c_b, th_a)
+                theta0 = th_a + rn * g3 / 2
+        else:
+            m = t >= s.end_s
+            if m.any():
+                tail = max(t[m].max() - s.end_s, 1e-9)
+                rate_piece(m, s.end_s, rk, 0.0, tail, c_end, th_end)
+    return Trajectory(t, C, w, ang, rate, idx)
+
+
+@dataclass(frozen=True)
+class BodyInputs:
+    """True inputs in body axes at each sample: total angular rate, its earth-rate part, specific force."""
+
+    omega_b_radps: np.ndarray
+    omega_earth_b_radps: np.ndarray
+    f_b_mps2: np.ndarray
+    trajectory: Trajectory
+
+
+def body_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float) -> BodyInputs:
+    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16)."""
+    tr = trajectory(plan, t_s)
+    ct = np.swapaxes(tr.c_b2l, 1, 2)
+    w_ie = earth_rate_level(latitude_deg, plan.frame)
+    f_l = specific_force_level(gravity_mps2, plan.frame)
+    w_e = ct @ w_ie
+    w_motion = np.einsum("nij,nj->ni", ct, tr.omega_motion_level_radps)
+    return BodyInputs(w_motion + w_e, w_e, ct @ f_l, tr)
+
+
+def consistent_plan_orientations(
+    steps: list[dict], table_axis_level=(0.0, 0.0, 1.0)
+) -> list[dict]:
+    """Fill each step's ``orientation_b2l`` from its ``mount_b2l`` (orientation at table angle zero) so that
+    consecutive rate steps on the same mount follow the linear ramp; returns new step dicts."""
+    axis = np.asarray(table_axis_level, dtype=float)
+    out = []
+    theta = 0.0
+    for k, s in enumerate(steps):
+        s = dict(s)
+        mount = np.asarray(s.pop("mount_b2l"), dtype=float)
+        if k:
+            prev = out[-1]
+            pr = np.radians(prev["table_rate_dps"])
+            rn = np.radians(s.get("table_rate_dps", 0.0))
+            gap = s["start_s"] - (prev["start_s"] + prev["duration_s"])
+            same = np.allclose(mount, prev_mount, atol=1e-12)
+            theta = theta + pr * prev["duration_s"]
+            if same:
+                theta += 0.5 * (pr + rn) * gap
+            else:
+                theta += pr * gap / 6 + rn * gap / 6
+        c = rotation_about(axis, theta) @ mount
+        s["orientation_b2l"] = [list(map(float, row)) for row in c]
+        out.append(s)
+        prev_mount = mount
+    return out

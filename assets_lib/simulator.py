@@ -1,0 +1,486 @@
+"""Digital twin of the calibration experiment: writes runs in the raw-log contract with known truth.
+
+The sensor is a chain of composable effects applied to the true body-frame inputs from the plan's
+kinematics (``kinematics.body_inputs``): the deterministic error model of docs/design.md (seed 000 eq. 1-2),
+Allan noise (IEEE 952 Annex C), then any extra effect (saturation, a disturbed plateau, temperature, latency,
+nonlinearity ...), then count quantization at write time. New effects implement :class:`SensorEffect` and plug
+into ``simulate_run(effects=[...])`` without changing anything here. Everything is seeded and deterministic.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, replace
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import pandas as pd
+
+from assets_lib.earth import normal_gravity_mps2
+from assets_lib.kinematics import BodyInputs, body_inputs
+from assets_lib.noise import AllanParams, allan_noise
+from assets_lib.plans import build_plan
+from raw_schemas.manifest import SCHEMA_VERSION, Manifest, TestPlan
+from raw_schemas.units import si_factor
+
+DEG = np.pi / 180.0
+DEGPH = DEG / 3600.0
+MG = 1e-3 * 9.80665
+UG = 1e-6 * 9.80665
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Truth model
+# ----------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class TriadTruth:
+    """Error model of one sensor triad in SI (docs/design.md): y = diag(K)(I+E) x + b + noise (+ second order)."""
+
+    scale: tuple[float, float, float]
+    misalignment_rad: tuple[tuple[float, ...], ...]  # 3x3, zero diagonal
+    bias: tuple[float, float, float]
+    noise: tuple[AllanParams, AllanParams, AllanParams]
+    lsb: float  # value of one output count, in ``lsb_unit``
+    lsb_unit: str
+    full_scale: float | None = None  # saturation limit, SI
+    k2: tuple[float, float, float] = (0.0, 0.0, 0.0)  # accel: 1/(m/s^2)
+    kc: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3  # accel cross-coupling Kc[i][j] f_i f_j, 1/(m/s^2)
+
+    def matrix(self) -> np.ndarray:
+        """diag(K)(I + E)."""
+        return np.diag(self.scale) @ (np.eye(3) + np.asarray(self.misalignment_rad))
+
+
+@dataclass(frozen=True)
+class DeviceTruth:
+    """Truth of one device for one power cycle; ``g_sensitivity`` is gyro rad/s per m/s^2 (3x3)."""
+
+    device_id: str
+    model: str
+    grade: str
+    gyro: TriadTruth
+    accel: TriadTruth
+    g_sensitivity: tuple[tuple[float, ...], ...] = ((0.0,) * 3,) * 3
+    #: turn-on to turn-on 1-sigma spreads (bias SI, scale dimensionless), and bias ageing per day (SI)
+    bias_repeatability: tuple[float, float] = (0.0, 0.0)  # (gyro, accel)
+    scale_repeatability: tuple[float, float] = (0.0, 0.0)
+    gyro_bias_drift_per_day: float = 0.0
+    sample_rate_hz: float = 100.0
+    temperature_degc: float = 25.0
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def for_power_cycle(self, cycle: int, seed: int, days_since_first: float = 0.0) -> "DeviceTruth":
+        """Truth after a turn-on: biases and scale factors redrawn with the repeatability spreads (seeded)."""
+        rng = np.random.default_rng([seed, _stable_int(self.device_id), cycle, 7])
+
+        def turn_on(tri: TriadTruth, sb: float, ss: float, drift: float) -> TriadTruth:
+            return replace(
+                tri,
+                bias=tuple(np.asarray(tri.bias) + sb * rng.standard_normal(3) + drift * days_since_first),
+                scale=tuple(np.asarray(tri.scale) + ss * rng.standard_normal(3)),
+            )
+
+        return replace(
+            self,
+            gyro=turn_on(self.gyro, self.bias_repeatability[0], self.scale_repeatability[0], self.gyro_bias_drift_per_day),
+            accel=turn_on(self.accel, self.bias_repeatability[1], self.scale_repeatability[1], 0.0),
+        )
+
+
+def _stable_int(text: str) -> int:
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
+
+
+def _offdiag(rng: np.random.Generator, sigma: float) -> tuple:
+    e = sigma * rng.standard_normal((3, 3))
+    np.fill_diagonal(e, 0.0)
+    return tuple(map(tuple, e))
+
+
+def example_device(device_id: str, grade: str, seed: int = 0) -> DeviceTruth:
+    """A plausible device of the given grade (navigation FOG + quartz, tactical MEMS, consumer MEMS), seeded.
+
+    Magnitudes follow docs effects.md and typical datasheets; the draw is random so every device differs.
+    """
+    rng = np.random.default_rng([seed, _stable_int(device_id)])
+    r3 = lambda s: tuple(s * rng.standard_normal(3))  # noqa: E731
+    if grade == "navigation":
+        gn = AllanParams(q=0.02 / 3600 * DEG, n=0.002 * DEG / 60, b=0.003 * DEGPH, k=0.0005 * DEGPH / 60)
+        an = AllanParams(n=5e-6 * 9.80665, b=5 * UG, k=0.0)
+        gyro = TriadTruth(tuple(1 + np.array(r3(30e-6))), _offdiag(rng, 30e-6), r3(0.05 * DEGPH), (gn,) * 3, 2e-6, "deg/s")
+        accel = TriadTruth(
+            tuple(1 + np.array(r3(80e-6))), _offdiag(rng, 50e-6), r3(60 * UG), (an,) * 3, 1e-6, "g",
+            k2=r3(10e-6 / 9.80665), kc=_offdiag(rng, 5e-6 / 9.80665),
+        )
+        return DeviceTruth(device_id, "FOG-900 / QA-2000", grade, gyro, accel, _offdiag(rng, 0.001 * DEGPH / 9.80665),
+                           (0.005 * DEGPH, 10 * UG), (5e-6, 10e-6), sample_rate_hz=100.0)
+    if grade == "tactical":
+        gn = AllanParams(n=0.15 * DEG / 60, b=0.8 * DEGPH, k=0.5 * DEGPH / 60)
+        an = AllanParams(n=0.03 / 60, b=20 * UG, k=0.0)
+        gyro = TriadTruth(tuple(1 + np.array(r3(400e-6))), _offdiag(rng, 0.5e-3), r3(5 * DEGPH), (gn,) * 3, 1e-4, "deg/s",
+                          full_scale=1000 * DEG)
+        accel = TriadTruth(
+            tuple(1 + np.array(r3(300e-6))), _offdiag(rng, 0.5e-3), r3(1.5 * MG), (an,) * 3, 1e-5, "g",
+            full_scale=20 * 9.80665, k2=r3(50e-6 / 9.80665), kc=_offdiag(rng, 20e-6 / 9.80665),
+        )
+        return DeviceTruth(device_id, "ADIS-like tactical MEMS", grade, gyro, accel, _offdiag(rng, 0.01 * DEG / 9.80665),
+                           (1.0 * DEGPH, 0.3 * MG), (50e-6, 40e-6), gyro_bias_drift_per_day=0.0, sample_rate_hz=100.0)
+    if grade == "consumer":
+        gn = AllanParams(n=0.005 * DEG, b=10 * DEGPH, k=5 * DEGPH / 60)
+        an = AllanParams(n=150 * UG, b=0.1 * MG)
+        gyro = TriadTruth(tuple(1 + np.array(r3(0.01))), _offdiag(rng, 5e-3), r3(0.5 * DEG), (gn,) * 3, 1 / 131.0, "deg/s",
+                          full_scale=250 * DEG)
+        accel = TriadTruth(
+            tuple(1 + np.array(r3(0.01))), _offdiag(rng, 5e-3), r3(30 * MG), (an,) * 3, 1 / 16384.0, "g",
+            full_scale=2 * 9.80665, k2=r3(300e-6 / 9.80665),
+        )
+        return DeviceTruth(device_id, "MPU-like consumer MEMS", grade, gyro, accel, _offdiag(rng, 0.05 * DEG / 9.80665),
+                           (0.05 * DEG, 5 * MG), (1e-3, 1e-3), sample_rate_hz=100.0)
+    raise ValueError(f"unknown grade {grade!r}")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Effects
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class SimContext:
+    """What an effect may look at: times, true inputs, temperature, step index, the truth and a seeded rng."""
+
+    t_s: np.ndarray
+    inputs: BodyInputs
+    truth: DeviceTruth
+    rate_hz: float
+    rng: np.random.Generator
+    temperature_degc: np.ndarray
+    step_index: np.ndarray
+
+
+class SensorEffect(Protocol):
+    """One composable piece of the sensor: maps (gyro, accel) outputs (n,3) SI to new outputs."""
+
+    name: str
+
+    def apply(self, ctx: SimContext, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Deterministic model of docs/design.md (seed 000 eq. 1-2): scale, misalignment, bias, g-sensitivity, K2, Kc."""
+
+    name: str = "error_model"
+
+    def apply(self, ctx, gyro, accel):
+        tr = ctx.truth
+        w, f = ctx.inputs.omega_b_radps, ctx.inputs.f_b_mps2
+        g = w @ tr.gyro.matrix().T + np.asarray(tr.gyro.bias) + f @ np.asarray(tr.g_sensitivity).T
+        kc = np.asarray(tr.accel.kc)
+        a = f @ tr.accel.matrix().T + np.asarray(tr.accel.bias) + np.asarray(tr.accel.k2) * f**2
+        a = a + f * (f @ kc.T)
+        return gyro + g, accel + a
+
+
+@dataclass(frozen=True)
+class AllanNoise:
+    """Allan noise of each axis (IEEE 952 Annex C), from the truth's per-axis ``AllanParams``."""
+
+    name: str = "allan_noise"
+
+    def apply(self, ctx, gyro, accel):
+        n = ctx.t_s.size
+        gyro = gyro.copy()
+        accel = accel.copy()
+        for i in range(3):
+            gyro[:, i] += allan_noise(n, ctx.rate_hz, ctx.truth.gyro.noise[i], ctx.rng)
+            accel[:, i] += allan_noise(n, ctx.rate_hz, ctx.truth.accel.noise[i], ctx.rng)
+        return gyro, accel
+
+
+@dataclass(frozen=True)
+class Saturation:
+    """Output clipped at the triads' full scale (effects.md: flat tops beyond full scale)."""
+
+    name: str = "saturation"
+
+    def apply(self, ctx, gyro, accel):
+        fs_g, fs_a = ctx.truth.gyro.full_scale, ctx.truth.accel.full_scale
+        if fs_g:
+            gyro = np.clip(gyro, -fs_g, fs_g)
+        if fs_a:
+            accel = np.clip(accel, -fs_a, fs_a)
+        return gyro, accel
+
+
+@dataclass(frozen=True)
+class PlateauDisturbance:
+    """A wild plateau: a constant offset on one channel during one plan step (a fixture knock, a glitch)."""
+
+    step_index: int
+    sensor: str  # 'gyro' | 'accel'
+    axis: int
+    offset: float  # SI
+    name: str = "plateau_disturbance"
+
+    def apply(self, ctx, gyro, accel):
+        m = ctx.step_index == self.step_index
+        out = (gyro if self.sensor == "gyro" else accel).copy()
+        out[m, self.axis] += self.offset
+        return (out, accel) if self.sensor == "gyro" else (gyro, out)
+
+
+@dataclass(frozen=True)
+class TemperatureBias:
+    """Bias proportional to (T - T0) (effects.md: temperature drift): gyro [rad/s/degC], accel [m/s^2/degC]."""
+
+    gyro_per_degc: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    accel_per_degc: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    t0_degc: float = 25.0
+    name: str = "temperature_bias"
+
+    def apply(self, ctx, gyro, accel):
+        dt = (ctx.temperature_degc - self.t0_degc)[:, None]
+        return gyro + dt * np.asarray(self.gyro_per_degc), accel + dt * np.asarray(self.accel_per_degc)
+
+
+@dataclass(frozen=True)
+class Latency:
+    """IMU samples delayed by ``delay_s`` relative to the table (effects.md: latency), by linear interpolation."""
+
+    delay_s: float
+    name: str = "latency"
+
+    def apply(self, ctx, gyro, accel):
+        t = ctx.t_s
+        shift = lambda y: np.column_stack([np.interp(t - self.delay_s, t, y[:, i]) for i in range(3)])  # noqa: E731
+        return shift(gyro), shift(accel)
+
+
+@dataclass(frozen=True)
+class GyroNonlinearity:
+    """Scale-factor nonlinearity: y_i += k2_i w_i^2 + k3_i w_i^3 (effects.md: SF nonlinearity)."""
+
+    k2_per_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    k3_per_radps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    name: str = "gyro_nonlinearity"
+
+    def apply(self, ctx, gyro, accel):
+        w = ctx.inputs.omega_b_radps
+        return gyro + np.asarray(self.k2_per_radps) * w**2 + np.asarray(self.k3_per_radps2) * w**3, accel
+
+
+DEFAULT_EFFECTS: tuple = (ErrorModel(), AllanNoise(), Saturation())
+
+
+# ----------------------------------------------------------------------------------------------------------
+# One run
+# ----------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SiteSpec:
+    name: str = "Xi'an test hall"
+    latitude_deg: float = 34.25
+    longitude_deg: float = 108.95
+    height_m: float = 400.0
+
+    def manifest_site(self) -> dict:
+        return {
+            "name": self.name,
+            "latitude_deg": self.latitude_deg,
+            "longitude_deg": self.longitude_deg,
+            "height_m": self.height_m,
+            "gravity_mps2": None,
+            "gravity_model": "wgs84_normal",
+        }
+
+    @property
+    def gravity_mps2(self) -> float:
+        return normal_gravity_mps2(self.latitude_deg, self.height_m)
+
+
+@dataclass(frozen=True)
+class SimulatedRun:
+    """A run as a capture job would write it (raw columns, counts) plus the truth that made it."""
+
+    manifest: Manifest
+    imu_raw: pd.DataFrame
+    table_raw: pd.DataFrame | None
+    truth: DeviceTruth
+    table_clock_offset_s: float
+    effects: tuple[str, ...] = field(default=())
+
+    @property
+    def partition_key(self) -> str:
+        return self.manifest.partition_key
+
+
+def _channels(truth: DeviceTruth) -> dict:
+    ch = {}
+    for ax in "xyz":
+        ch[f"gyro_{ax}"] = {"unit": "counts", "lsb": truth.gyro.lsb, "lsb_unit": truth.gyro.lsb_unit}
+        ch[f"accel_{ax}"] = {"unit": "counts", "lsb": truth.accel.lsb, "lsb_unit": truth.accel.lsb_unit}
+    ch["temperature"] = {"unit": "degC"}
+    return ch
+
+
+def to_counts(values_si: np.ndarray, lsb: float, lsb_unit: str, family: str) -> np.ndarray:
+    """Quantize SI values to integer counts of ``lsb`` ``lsb_unit`` (round to nearest)."""
+    return np.rint(values_si / (lsb * si_factor(family, lsb_unit))).astype(np.int64)
+
+
+def simulate_run(
+    truth: DeviceTruth,
+    plan: TestPlan | str,
+    run_id: str,
+    *,
+    test_kind: str | None = None,
+    site: SiteSpec = SiteSpec(),
+    start_time_utc: datetime = datetime(2026, 1, 5, 8, 0, tzinfo=timezone.utc),
+    power_cycle_index: int = 0,
+    seed: int = 0,
+    effects=DEFAULT_EFFECTS,
+    table_log: bool = True,
+    table_rate_hz: float = 50.0,
+    table_clock_offset_s: float | None = None,
+    tail_s: float = 2.0,
+    plan_kwargs: dict | None = None,
+) -> SimulatedRun:
+    """Simulate one run of ``plan`` for ``truth`` (already drawn for its power cycle), seeded and deterministic."""
+    if isinstance(plan, str):
+        kind = test_kind or _template_kind(plan)
+        plan = build_plan(plan, **(plan_kwargs or {}))
+    else:
+        kind = test_kind or "multiposition"
+    fs = truth.sample_rate_hz
+    rng = np.random.default_rng([seed, _stable_int(truth.device_id), _stable_int(run_id)])
+    n = int(np.floor((plan.end_s + tail_s) * fs)) + 1
+    t = np.arange(n) / fs
+    g = site.gravity_mps2
+    inputs = body_inputs(plan, t, site.latitude_deg, g)
+    temp = truth.temperature_degc + 1.5 * (1 - np.exp(-t / 900.0))  # warm-up of the housing
+    ctx = SimContext(t, inputs, truth, fs, rng, temp, inputs.trajectory.step_index)
+    gyro = np.zeros((n, 3))
+    accel = np.zeros((n, 3))
+    for eff in effects:
+        gyro, accel = eff.apply(ctx, gyro, accel)
+    imu = {"time_s": np.round(t, 9)}
+    for i, ax in enumerate("xyz"):
+        imu[f"gyro_{ax}"] = to_counts(gyro[:, i], truth.gyro.lsb, truth.gyro.lsb_unit, "gyro")
+    for i, ax in enumerate("xyz"):
+        imu[f"accel_{ax}"] = to_counts(accel[:, i], truth.accel.lsb, truth.accel.lsb_unit, "accel")
+    imu["temperature"] = np.round(temp + 0.02 * rng.standard_normal(n), 3)
+    imu["counter"] = np.arange(n, dtype=np.int64)
+    imu_df = pd.DataFrame(imu)
+
+    offset = float(table_clock_offset_s if table_clock_offset_s is not None else rng.uniform(0.2, 2.0))
+    table_df = None
+    if table_log:
+        tt = np.arange(0.0, plan.end_s + tail_s, 1.0 / table_rate_hz)
+        ttr = body_inputs(plan, tt, site.latitude_deg, g).trajectory
+        table_df = pd.DataFrame(
+            {
+                "time_s": np.round(tt + offset, 6),  # the table clock reads imu time + offset
+                "angle_deg": np.degrees(ttr.table_angle_rad) % 360.0,
+                "rate_dps": np.degrees(ttr.table_rate_radps),
+                "step_index": ttr.step_index,
+            }
+        )
+    manifest = Manifest.model_validate(
+        {
+            "schema_version": SCHEMA_VERSION,
+            "device": {"id": truth.device_id, "model": truth.model, "grade": truth.grade, "serial": None},
+            "run_id": run_id,
+            "test_kind": kind,
+            "start_time_utc": start_time_utc,
+            "site": site.manifest_site(),
+            "sample_rate_hz": fs,
+            "channels": _channels(truth),
+            "plan": plan.model_dump(),
+            "power_cycle_index": power_cycle_index,
+            "table_id": "TT-3AX-01" if table_log else None,
+            "notes": "simulated by imulab " + ",".join(e.name for e in effects),
+        }
+    )
+    return SimulatedRun(manifest, imu_df, table_df, truth, offset, tuple(e.name for e in effects))
+
+
+def _template_kind(name: str) -> str:
+    from assets_lib.plans import load_template
+
+    return load_template(name)["test_kind"]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Writing runs and archives
+# ----------------------------------------------------------------------------------------------------------
+def write_run(run: SimulatedRun, landing: Path, fmt: str = "parquet", truth_dir: Path | None = None) -> Path:
+    """Write ``<landing>/<device>/<run>/`` like a capture job: streams, manifest, then ``_COMPLETE`` last.
+
+    The truth goes to ``truth_dir`` (default ``<landing>/_truth``), outside any run folder.
+    """
+    d = Path(landing) / run.manifest.device.id / run.manifest.run_id
+    d.mkdir(parents=True, exist_ok=True)
+    if fmt == "csv":
+        run.imu_raw.to_csv(d / "imu.csv", index=False, float_format="%.9g")
+        if run.table_raw is not None:
+            run.table_raw.to_csv(d / "table.csv", index=False, float_format="%.9g")
+    elif fmt == "parquet":
+        run.imu_raw.to_parquet(d / "imu.parquet", index=False)
+        if run.table_raw is not None:
+            run.table_raw.to_parquet(d / "table.parquet", index=False)
+    else:
+        raise ValueError(f"format must be csv or parquet, not {fmt!r}")
+    (d / "manifest.json").write_text(run.manifest.model_dump_json(indent=2) + "\n")
+    tdir = Path(truth_dir) if truth_dir else Path(landing) / "_truth"
+    (tdir / run.manifest.device.id).mkdir(parents=True, exist_ok=True)
+    (tdir / run.manifest.device.id / f"{run.manifest.run_id}.json").write_text(
+        json.dumps({"truth": run.truth.to_json(), "table_clock_offset_s": run.table_clock_offset_s,
+                    "effects": list(run.effects)}, indent=1, default=float) + "\n"
+    )
+    (d / "_COMPLETE").write_text("")
+    return d
+
+
+@dataclass(frozen=True)
+class ArchiveSpec:
+    """What ``imulab simulate`` writes: devices (id, grade), power cycles, plans, static duration."""
+
+    devices: tuple[tuple[str, str], ...] = (("NAV-001", "navigation"), ("TAC-002", "tactical"), ("CON-003", "consumer"))
+    power_cycles: int = 3
+    rate_plan: str = "quick_rate"
+    position_plan: str = "quick_24_position"
+    tumble_plan: str = "seed001_12_position_tumble"
+    static_duration_s: float = 1200.0
+    tumble_duration_scale: float = 0.5
+    days_between_cycles: float = 7.0
+    seed: int = 2026
+
+
+def default_archive_runs(spec: ArchiveSpec = ArchiveSpec()):
+    """Yield every simulated run of the archive (several devices, power-cycled repeats, every test kind)."""
+    t0 = datetime(2026, 1, 5, 8, 0, tzinfo=timezone.utc)
+    for dev_id, grade in spec.devices:
+        base = example_device(dev_id, grade, spec.seed)
+        for cycle in range(spec.power_cycles):
+            day = cycle * spec.days_between_cycles
+            truth = base.for_power_cycle(cycle, spec.seed, day)
+            start = t0 + timedelta(days=day)
+            yield simulate_run(truth, spec.rate_plan, f"pc{cycle:02d}-rate", power_cycle_index=cycle,
+                               start_time_utc=start, seed=spec.seed)
+            yield simulate_run(truth, spec.position_plan, f"pc{cycle:02d}-pos24", power_cycle_index=cycle,
+                               start_time_utc=start + timedelta(hours=1), seed=spec.seed)
+            if cycle == 0:
+                yield simulate_run(truth, "static_long", f"pc{cycle:02d}-static", power_cycle_index=cycle,
+                                   start_time_utc=start + timedelta(hours=2), seed=spec.seed, table_log=False,
+                                   plan_kwargs={"static_duration_s": spec.static_duration_s})
+                yield simulate_run(truth, spec.tumble_plan, f"pc{cycle:02d}-tumble", power_cycle_index=cycle,
+                                   start_time_utc=start + timedelta(hours=3), seed=spec.seed,
+                                   plan_kwargs={"duration_scale": spec.tumble_duration_scale})
+
+
+def write_archive(landing: Path, spec: ArchiveSpec = ArchiveSpec(), fmt_by_grade: dict | None = None) -> list[Path]:
+    """Write the default lab archive; consumer devices as CSV, others as parquet unless ``fmt_by_grade`` says."""
+    fmts = fmt_by_grade or {"consumer": "csv"}
+    return [write_run(r, landing, fmts.get(r.truth.grade, "parquet")) for r in default_archive_runs(spec)]
