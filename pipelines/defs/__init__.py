@@ -1,0 +1,1 @@
+"""Dagster definitions by stage: ``ingest``, ``calibration``, ``noise``, ``fleet``; sensors and schedules."""

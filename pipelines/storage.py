@@ -1,0 +1,142 @@
+"""Versioned, atomic, never-overwritten parquet storage for every asset partition.
+
+Layout: ``<root>/<asset>/<partition>/<version>/<table>.parquet`` (+ ``meta.json``), and a ``CURRENT`` file per
+asset partition naming the version readers use. A version id is a content hash of the asset's code version and
+the versions of everything it was computed from, so re-running with the same raw data and code maps to the same
+version: nothing new is written (idempotent), and bytes are identical. A version directory is written in a
+temporary sibling and published with one ``os.rename``; ``CURRENT`` is replaced with ``os.replace``: a crash
+never leaves a half-written file where a reader looks. Earlier versions stay on disk for audit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+CURRENT = "CURRENT"
+META = "meta.json"
+
+
+def version_id(asset: str, code_version: str, inputs: dict[str, str] | None = None, params: dict | None = None) -> str:
+    """Deterministic version of an asset partition: sha256 over code version, input versions and parameters."""
+    payload = json.dumps(
+        {"asset": asset, "code_version": code_version, "inputs": inputs or {}, "params": params or {}},
+        sort_keys=True,
+        default=str,
+    )
+    return hashlib.sha256(payload.encode()).hexdigest()[:20]
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # pragma: no cover - platforms without directory fds
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_parquet_deterministic(df: pd.DataFrame, path: Path) -> None:
+    """Parquet without pandas index or time-dependent metadata, so equal frames give equal bytes."""
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    pq.write_table(table, path, compression="zstd", write_statistics=True)
+
+
+@dataclass(frozen=True)
+class VersionedStore:
+    """Plain-Python store behind the ``ParquetStore`` resource (also used by the CLI)."""
+
+    root: Path
+
+    def partition_dir(self, asset: str, partition: str) -> Path:
+        return Path(self.root) / asset / partition
+
+    def current_version(self, asset: str, partition: str) -> str | None:
+        p = self.partition_dir(asset, partition) / CURRENT
+        return p.read_text().strip() if p.is_file() else None
+
+    def version_dir(self, asset: str, partition: str, version: str | None = None) -> Path:
+        version = version or self.current_version(asset, partition)
+        if version is None:
+            raise FileNotFoundError(f"asset {asset!r} partition {partition!r} has not been materialized under {self.root}")
+        return self.partition_dir(asset, partition) / version
+
+    def exists(self, asset: str, partition: str, version: str) -> bool:
+        return (self.partition_dir(asset, partition) / version / META).is_file()
+
+    def write(
+        self,
+        asset: str,
+        partition: str,
+        version: str,
+        tables: dict[str, pd.DataFrame],
+        meta: dict | None = None,
+        files: dict[str, bytes] | None = None,
+    ) -> tuple[Path, bool]:
+        """Publish ``tables`` (and extra ``files``) as ``version``; returns (dir, written). Existing versions are
+        never rewritten: the call then only moves ``CURRENT`` to it."""
+        pdir = self.partition_dir(asset, partition)
+        final = pdir / version
+        written = False
+        if not (final / META).is_file():
+            pdir.mkdir(parents=True, exist_ok=True)
+            tmp = Path(tempfile.mkdtemp(prefix=f".{version}.", dir=pdir))
+            try:
+                for name, df in tables.items():
+                    write_parquet_deterministic(df, tmp / f"{name}.parquet")
+                for name, data in (files or {}).items():
+                    (tmp / name).write_bytes(data)
+                (tmp / META).write_text(json.dumps({"asset": asset, "partition": partition, "version": version,
+                                                     "tables": sorted(tables), **(meta or {})},
+                                                    sort_keys=True, indent=1, default=str) + "\n")
+                for f in tmp.iterdir():
+                    with open(f, "rb") as fh:
+                        os.fsync(fh.fileno())
+                try:
+                    os.rename(tmp, final)
+                    written = True
+                except OSError:
+                    if not (final / META).is_file():  # a concurrent writer published the same version
+                        raise
+            finally:
+                if tmp.exists():
+                    shutil.rmtree(tmp, ignore_errors=True)
+            _fsync_dir(pdir)
+        self._set_current(pdir, version)
+        return final, written
+
+    def _set_current(self, pdir: Path, version: str) -> None:
+        cur = pdir / CURRENT
+        if cur.is_file() and cur.read_text().strip() == version:
+            return
+        fd, tmp = tempfile.mkstemp(prefix=".CURRENT.", dir=pdir)
+        with os.fdopen(fd, "w") as f:
+            f.write(version + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, cur)
+
+    def read(self, asset: str, partition: str, table: str, version: str | None = None) -> pd.DataFrame:
+        return pd.read_parquet(self.version_dir(asset, partition, version) / f"{table}.parquet")
+
+    def read_meta(self, asset: str, partition: str, version: str | None = None) -> dict:
+        return json.loads((self.version_dir(asset, partition, version) / META).read_text())
+
+    def partitions(self, asset: str) -> list[str]:
+        d = Path(self.root) / asset
+        return sorted(p.name for p in d.iterdir() if (p / CURRENT).is_file()) if d.is_dir() else []
+
+    def versions(self, asset: str, partition: str) -> list[str]:
+        d = self.partition_dir(asset, partition)
+        return sorted(p.name for p in d.iterdir() if (p / META).is_file()) if d.is_dir() else []
