@@ -33,3 +33,4 @@ def ingested_run(key: str, inputs: StageInputs) -> StageOutput:
         files={"manifest.json": (json.dumps(json.loads(m.model_dump_json()), indent=1, sort_keys=True) + "\n").encode()},
         summary={"test_kind": m.test_kind, "n_samples": len(run.imu), "duration_s": float(run.imu.time_s.iloc[-1])},
     )
+ASSETS = [ingested_run]

@@ -48,3 +48,5 @@ def landing_sensor(context: dg.SensorEvaluationContext, archive: LabArchive):
         run_requests=[dg.RunRequest(run_key=f"landing-{landing_digest(new)}", tags=range_tags(new[0], new[-1]))],
         cursor=cursor,
     )
+
+SENSORS = [landing_sensor]
