@@ -17,6 +17,8 @@ from scipy.spatial.transform import Rotation
 from assets_lib.earth import earth_rate_level, specific_force_level
 
 _SAME_MOUNT_TOL_RAD = 1e-6
+#: deceleration of the table after the last step [rad/s^2]
+TAIL_DECEL_RADPS2 = np.radians(200.0)
 
 
 def rotation_about(axis: np.ndarray, angle_rad: np.ndarray | float) -> np.ndarray:
@@ -131,10 +133,15 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
                 rate_piece(m3, s.end_s + 2 * g3, 0.0, rn, g3, c_b, th_a)
                 theta0 = th_a + rn * g3 / 2
         else:
-            m = t >= s.end_s
+            # after the plan the table decelerates to rest at TAIL_DECEL_RADPS2, then stays there
+            ramp = abs(rk) / TAIL_DECEL_RADPS2
+            m = (t >= s.end_s) & (t < s.end_s + ramp)
             if m.any():
-                tail = max(t[m].max() - s.end_s, 1e-9)
-                rate_piece(m, s.end_s, rk, 0.0, tail, c_end, th_end)
+                rate_piece(m, s.end_s, rk, 0.0, ramp, c_end, th_end)
+            m = t >= s.end_s + ramp
+            if m.any():
+                c_rest = rotation_about(axis, 0.5 * rk * ramp) @ c_end
+                rate_piece(m, s.end_s + ramp, 0.0, 0.0, 1.0, c_rest, th_end + 0.5 * rk * ramp)
     return Trajectory(t, C, w, ang, rate, idx)
 
 

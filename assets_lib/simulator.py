@@ -423,9 +423,9 @@ def write_run(run: SimulatedRun, landing: Path, fmt: str = "parquet", truth_dir:
     d = Path(landing) / run.manifest.device.id / run.manifest.run_id
     d.mkdir(parents=True, exist_ok=True)
     if fmt == "csv":
-        run.imu_raw.to_csv(d / "imu.csv", index=False, float_format="%.9g")
+        run.imu_raw.to_csv(d / "imu.csv", index=False)
         if run.table_raw is not None:
-            run.table_raw.to_csv(d / "table.csv", index=False, float_format="%.9g")
+            run.table_raw.to_csv(d / "table.csv", index=False)
     elif fmt == "parquet":
         run.imu_raw.to_parquet(d / "imu.parquet", index=False)
         if run.table_raw is not None:

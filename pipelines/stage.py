@@ -70,6 +70,15 @@ class StageInputs:
         k = key or self.key
         return self.store.read_meta(asset, k, self.versions.get(f"{asset}/{k}"))
 
+    def file(self, asset: str, name: str, key: str | None = None) -> bytes:
+        """An extra file stored with an upstream version (e.g. ``manifest.json`` of ``ingested_run``)."""
+        k = key or self.key
+        return (self.store.version_dir(asset, k, self.versions.get(f"{asset}/{k}")) / name).read_bytes()
+
+    def has_table(self, asset: str, name: str, key: str | None = None) -> bool:
+        k = key or self.key
+        return (self.store.version_dir(asset, k, self.versions.get(f"{asset}/{k}")) / f"{name}.parquet").is_file()
+
     def run_dir(self) -> Path:
         return self.archive.run_dir(self.key)
 
@@ -182,11 +191,9 @@ def _scalars(d: dict) -> dict:
 
 
 def _test_kind(store: VersionedStore, key: str, inputs: dict[str, str]) -> str | None:
-    for k, v in inputs.items():
-        asset, _, part = k.partition("/")
-        if asset == "ingested_run":
-            return store.read_meta(asset, part, v).get("test_kind")
-    return None
+    """Test kind of a capture, from its ingested manifest."""
+    v = inputs.get(f"ingested_run/{key}") or store.current_version("ingested_run", key)
+    return store.read_meta("ingested_run", key, v).get("test_kind") if v else None
 
 
 # ---------------------------------------------------------------------------------------------------------------

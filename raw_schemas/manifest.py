@@ -24,6 +24,18 @@ IMU_CHANNELS = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
 OPTIONAL_CHANNELS = ("temperature",)
 
 
+class ContractError(ValueError):
+    """A validator's finding with a precise place: ``where`` (dotted path from the manifest root), ``expected``,
+    ``found``.
+
+    Pydantic wraps it in its ``ValidationError``; :func:`load_manifest` unwraps it into a :class:`RawDataError`.
+    """
+
+    def __init__(self, where: str, expected: str, found: str | None = None):
+        self.where, self.expected, self.found = where, expected, found
+        super().__init__(f"{where}: expected {expected}" + (f", found {found}" if found is not None else ""))
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -164,7 +176,9 @@ class Manifest(_Strict):
     @classmethod
     def _aware(cls, v: datetime):
         if v.tzinfo is None or v.utcoffset().total_seconds() != 0:
-            raise ValueError("start_time_utc must carry a UTC offset of zero, e.g. 2026-01-05T08:00:00Z")
+            offset = "no UTC offset" if v.tzinfo is None else f"offset {v.tzname()}"
+            raise ContractError("start_time_utc", "an ISO 8601 time with UTC offset zero, e.g. 2026-01-05T08:00:00Z",
+                                f"{v.isoformat()!r} ({offset})")
         return v
 
     @field_validator("channels")
@@ -172,16 +186,20 @@ class Manifest(_Strict):
     def _channels(cls, v: dict[str, ChannelSpec]):
         missing = [c for c in IMU_CHANNELS if c not in v]
         if missing:
-            raise ValueError(f"channels is missing {missing}")
+            raise ContractError("channels", f"an entry for each of {list(IMU_CHANNELS)}", f"no entry for {missing}")
         for name, spec in v.items():
             if name not in IMU_CHANNELS + OPTIONAL_CHANNELS:
-                raise ValueError(f"unknown channel {name!r}; allowed {list(IMU_CHANNELS + OPTIONAL_CHANNELS)}")
+                raise ContractError(f"channels.{name}", f"a channel of {list(IMU_CHANNELS + OPTIONAL_CHANNELS)}",
+                                    f"unknown channel {name!r}")
             fam = family_of(name)
             unit = spec.physical_unit
             if unit not in UNITS_BY_FAMILY[fam]:
-                raise ValueError(
-                    f"channel {name!r}: unknown unit {unit!r}; expected one of "
-                    f"{sorted(UNITS_BY_FAMILY[fam])}" + (" or 'counts' with lsb/lsb_unit" if fam != "temperature" else "")
+                key = "lsb_unit" if spec.unit == COUNT_UNIT else "unit"
+                raise ContractError(
+                    f"channels.{name}.{key}",
+                    f"one of the {fam} units {sorted(UNITS_BY_FAMILY[fam])}"
+                    + (" (or unit 'counts' with lsb and lsb_unit)" if key == "unit" and fam != "temperature" else ""),
+                    f"unknown unit {unit!r}",
                 )
         return v
 
@@ -214,11 +232,27 @@ def load_manifest(path: str | Path) -> Manifest:
     try:
         return Manifest.model_validate(raw)
     except ValidationError as e:
-        first = e.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"]) or "top level"
-        found = first.get("input")
-        found_s = None if isinstance(found, (dict, list)) else repr(found)
-        raise RawDataError(path.name, f"field '{loc}'", first["msg"].removeprefix("Value error, "), found_s) from None
+        raise _contract_error(path.name, e.errors()[0]) from None
+
+
+def _contract_error(file: str, err: dict) -> RawDataError:
+    """One pydantic error -> RawDataError(file, "field '<dotted.path>'", expected, found)."""
+    loc = ".".join(str(p) for p in err["loc"])
+    cause = (err.get("ctx") or {}).get("error")
+    if isinstance(cause, ContractError):
+        return RawDataError(file, f"field '{cause.where}'", cause.expected, cause.found)
+    value = err.get("input")
+    found = None if isinstance(value, (dict, list)) else repr(value)
+    msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "missing":
+        expected, found = "a value (required field)", "no such field"
+    elif err["type"] == "extra_forbidden":
+        expected, found = "only the fields of the manifest schema", f"unknown field {err['loc'][-1]!r}"
+    elif msg.startswith("Input should be "):
+        expected = msg.removeprefix("Input should be ")
+    else:
+        expected = msg
+    return RawDataError(file, f"field '{loc or 'top level'}'", expected, found)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -90,7 +90,7 @@ def read_stream(path: Path) -> pd.DataFrame:
             table = pq.read_table(path)
         except (pa.ArrowInvalid, OSError) as e:
             raise RawDataError(name, "file", "a complete, readable parquet file (truncated?)", str(e).splitlines()[0]) from None
-        return table.to_pandas()
+        return _to_pandas(table)
     data = path.read_bytes()
     if not data.strip():
         raise RawDataError(name, "file", "a header line and data rows", "an empty file")
@@ -102,21 +102,45 @@ def read_stream(path: Path) -> pd.DataFrame:
         table = pacsv.read_csv(
             pa.py_buffer(data),
             parse_options=pacsv.ParseOptions(newlines_in_values=False),
-            convert_options=pacsv.ConvertOptions(strings_can_be_null=False),
+            # only an empty field is null; 'nan' / 'inf' parse as floats and are reported as such
+            convert_options=pacsv.ConvertOptions(null_values=[""], strings_can_be_null=False),
         )
     except pa.ArrowInvalid as e:
         msg = str(e)
-        row = _csv_row_from_error(data, msg)
-        raise RawDataError(name, row or "file", "the same number of fields on every line as in the header", msg.split(":")[-1].strip() or msg) from None
-    return table.to_pandas()
+        bad = _csv_bad_line(data)
+        if bad is None:
+            raise RawDataError(name, "file", "a CSV file with a header line and comma-separated data rows",
+                               msg) from None
+        row, nfields, ncol, line = bad
+        raise RawDataError(name, f"row {row} (line {row + 1})", f"{ncol} comma-separated fields as in the header",
+                           f"{nfields}: {line!r} (line cut mid-row?)") from None
+    return _to_pandas(table)
 
 
-def _csv_row_from_error(data: bytes, msg: str) -> str | None:
-    ncol = data.split(b"\n", 1)[0].count(b",") + 1
-    for i, line in enumerate(data.split(b"\n")[1:], start=1):
+def _to_pandas(table: pa.Table) -> pd.DataFrame:
+    """Arrow -> pandas, keeping a null (empty CSV field, parquet null) distinguishable from NaN: it becomes None."""
+    df = table.to_pandas()
+    for col in table.column_names:
+        if table.column(col).null_count:
+            df[col] = pd.Series(table.column(col).to_pylist(), dtype=object, index=df.index)
+    return df
+
+
+def _csv_bad_line(data: bytes) -> tuple[int, int, int, str] | None:
+    """(data row, fields found, fields expected, line text) of the first line whose field count differs."""
+    lines = data.split(b"\n")
+    ncol = lines[0].count(b",") + 1
+    for i, line in enumerate(lines[1:], start=1):
         if line and line.count(b",") + 1 != ncol:
-            return f"row {i} (line {i + 1})"
+            return i, line.count(b",") + 1, ncol, line.decode("utf-8", "replace")
     return None
+
+
+def _fmt(v) -> str:
+    """A raw value as it appears in messages: ``0.5``, ``nan``, ``'abc'`` (no numpy type names)."""
+    if isinstance(v, np.generic):
+        v = v.item()
+    return repr(v)
 
 
 def _check_columns(df: pd.DataFrame, name: str, required, optional) -> None:
@@ -141,19 +165,23 @@ def _numeric_column(df: pd.DataFrame, col: str, name: str, kind: str) -> np.ndar
         bad = np.flatnonzero(conv.isna().to_numpy() & s.notna().to_numpy())
         if bad.size:
             i = int(bad[0])
-            raise RawDataError(name, _row(name, i, col), "a number", repr(s.iloc[i]))
+            raise RawDataError(name, _row(name, i, col), "a number", _fmt(s.iloc[i]))
         s = conv
     vals = s.to_numpy(dtype=float, na_value=np.nan)
     bad = np.flatnonzero(~np.isfinite(vals))
     if bad.size:
         i = int(bad[0])
-        found = "an empty field" if pd.isna(df[col].iloc[i]) and not isinstance(df[col].iloc[i], float) else repr(df[col].iloc[i])
-        raise RawDataError(name, _row(name, i, col), "a finite number", f"{found} ({bad.size} such rows)")
+        v = df[col].iloc[i]
+        if v is None or v is pd.NA:
+            found = "an empty field" if name.endswith(".csv") else "a null value"
+        else:
+            found = _fmt(v)
+        raise RawDataError(name, _row(name, i, col), "a finite number", f"{found} ({bad.size} such row{'s' if bad.size > 1 else ''})")
     if kind == "int":
         frac = np.flatnonzero(vals != np.round(vals))
         if frac.size:
             i = int(frac[0])
-            raise RawDataError(name, _row(name, i, col), "an integer", repr(df[col].iloc[i]))
+            raise RawDataError(name, _row(name, i, col), "an integer", _fmt(df[col].iloc[i]))
     return vals
 
 
@@ -170,11 +198,11 @@ def _check_time(t: np.ndarray, name: str, rate_hz: float | None) -> None:
     back = np.flatnonzero(d < 0)
     if back.size and (not dup.size or back[0] < dup[0]):
         i = int(back[0]) + 1
-        raise RawDataError(name, _row(name, i, "time_s"), f"time increasing (previous row {t[i - 1]!r})",
-                           f"{t[i]!r}: time goes backwards")
+        raise RawDataError(name, _row(name, i, "time_s"), f"time increasing (previous row {_fmt(t[i - 1])})",
+                           f"{_fmt(t[i])}: time goes backwards")
     if dup.size:
         i = int(dup[0]) + 1
-        raise RawDataError(name, _row(name, i, "time_s"), "a unique time stamp", f"{t[i]!r}, the same as the previous row")
+        raise RawDataError(name, _row(name, i, "time_s"), "a unique time stamp", f"{_fmt(t[i])}, the same as the previous row")
     if rate_hz:
         period = 1.0 / rate_hz
         med = float(np.median(d))
@@ -213,7 +241,7 @@ def canonical_imu(manifest: Manifest, raw: pd.DataFrame, name: str = "imu") -> p
             frac = np.flatnonzero(vals != np.round(vals))
             if frac.size:
                 i = int(frac[0])
-                raise RawDataError(name, _row(name, i, ch), "an integer count (manifest unit 'counts')", repr(raw[ch].iloc[i]))
+                raise RawDataError(name, _row(name, i, ch), "an integer count (manifest unit 'counts')", _fmt(raw[ch].iloc[i]))
         factor = spec.physical_per_raw() * si_factor(family_of(ch), spec.physical_unit)
         out[CANONICAL_IMU_SCHEMA.names[1 + IMU_CHANNELS.index(ch)]] = vals * factor
     out["temperature_degc"] = cols["temperature"] if "temperature" in cols else np.full(t.size, np.nan)
@@ -225,15 +253,16 @@ def canonical_imu(manifest: Manifest, raw: pd.DataFrame, name: str = "imu") -> p
 def _check_plan_length(manifest: Manifest, t: np.ndarray, name: str) -> None:
     plan = manifest.plan
     period = 1.0 / manifest.sample_rate_hz
+    last = _row(name, t.size - 1, "time_s")
     for s in plan.steps:
         if s.end_s > t[-1] + period:
-            raise RawDataError(name, "rows", f"data covering plan step {s.index} ({s.label or s.kind}) to {s.end_s:.6g} s",
+            raise RawDataError(name, last, f"data covering plan step {s.index} ({s.label or s.kind}) to {s.end_s:.6g} s",
                                f"data ending at {t[-1]:.6g} s ({len(plan.steps)} steps planned, plan ends at {plan.end_s:.6g} s)")
     if t[0] > plan.steps[0].start_s:
-        raise RawDataError(name, "rows", f"data starting by plan step 0 at {plan.steps[0].start_s:.6g} s", f"first sample at {t[0]:.6g} s")
+        raise RawDataError(name, _row(name, 0, "time_s"), f"data starting by plan step 0 at {plan.steps[0].start_s:.6g} s", f"first sample at {t[0]:.6g} s")
     tail = max(PLAN_TAIL_TOLERANCE_S, 0.1 * plan.end_s)
     if t[-1] > plan.end_s + tail:
-        raise RawDataError(name, "rows", f"data ending within {tail:.6g} s after the plan ({plan.end_s:.6g} s)",
+        raise RawDataError(name, last, f"data ending within {tail:.6g} s after the plan ({plan.end_s:.6g} s)",
                            f"data ending at {t[-1]:.6g} s: is this the right manifest/plan?")
 
 
@@ -246,7 +275,7 @@ def canonical_table(manifest: Manifest, raw: pd.DataFrame, name: str = "table") 
     bad = np.flatnonzero((idx < -1) | (idx >= len(manifest.plan.steps)))
     if bad.size:
         i = int(bad[0])
-        raise RawDataError(name, _row(name, i, "step_index"), f"-1 or a plan step index 0..{len(manifest.plan.steps) - 1}", repr(raw["step_index"].iloc[i]))
+        raise RawDataError(name, _row(name, i, "step_index"), f"-1 or a plan step index 0..{len(manifest.plan.steps) - 1}", _fmt(raw["step_index"].iloc[i]))
     return pd.DataFrame(
         {
             "time_s": cols["time_s"],
