@@ -8,7 +8,7 @@ from pipelines.stage import StageInputs, StageOutput, stage
 from raw_schemas.readers import ingest_run
 
 
-@stage("ingested_run", level="capture", group="ingest", code_version="1")
+@stage("ingested_run", level="capture", group="ingest", code_version="2")
 def ingested_run(key: str, inputs: StageInputs) -> StageOutput:
     """Raw run folder -> canonical IMU (and turntable) parquet, manifest and sha256 of every raw file."""
     run = ingest_run(inputs.run_dir())
@@ -26,6 +26,7 @@ def ingested_run(key: str, inputs: StageInputs) -> StageOutput:
         "file_sha256": run.file_sha256,
         "n_samples": len(run.imu),
         "has_table_log": run.table is not None,
+        "sample_rate_hz": m.sample_rate_hz,
     }
     return StageOutput(
         tables=tables,
