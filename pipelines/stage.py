@@ -56,11 +56,13 @@ STAGES: dict[str, StageSpec] = {}
 class StageInputs:
     """Read access for a stage's compute function: upstream tables and metadata, the raw folder."""
 
-    def __init__(self, store: VersionedStore, archive: LabArchive | None, key: str, versions: dict[str, str]):
+    def __init__(self, store: VersionedStore, archive: LabArchive | None, key: str, versions: dict[str, str],
+                 run_id: str | None = None):
         self.store = store
         self.archive = archive
         self.key = key
         self.versions = versions
+        self.run_id = run_id  # the Dagster run computing this partition (None outside Dagster); provenance only
 
     def table(self, asset: str, name: str, key: str | None = None) -> pd.DataFrame:
         k = key or self.key
@@ -154,7 +156,7 @@ def run_stage(context, spec: StageSpec, store: VersionedStore, archive: LabArchi
             rows.append({"partition": key, "status": "reused", "version": version})
             continue
         try:
-            out = spec.compute(key, StageInputs(store, archive, key, inputs))
+            out = spec.compute(key, StageInputs(store, archive, key, inputs, run_id=context.run_id))
         except Exception as e:  # noqa: BLE001 - one bad partition must not stop the batch; reported below
             errors.append(f"{key}: {type(e).__name__}: {e}")
             context.log.error(f"{spec.name} failed for {key}: {e}")

@@ -133,7 +133,7 @@ def _chi2_check(asset: str):
         bad, values = [], {}
         for k in _keys(context, st, asset):
             r = st.read(asset, k, "residuals")
-            z = r.loc[~r["excluded"].astype(bool), "standardized_residual"].to_numpy(dtype=float)
+            z = r.loc[~r["excluded"].astype(bool), "std_residual"].to_numpy(dtype=float)
             z = z[np.isfinite(z)]
             if z.size == 0:
                 continue

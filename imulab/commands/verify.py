@@ -1,0 +1,242 @@
+"""``imulab verify RECORD``: recompute a calibration record from the raw archive and check it and its hash chain.
+
+For the record and (unless ``--shallow``) every earlier record of the same device:
+1. the record validates against ``imulab/record.schema.json`` and its ``record_sha256`` is the hash of its content;
+2. every raw file of the run folder is re-hashed and compared with the recorded sha256 (changed, missing, extra);
+3. ingestion and the fits are re-run from the raw folder through the stages' own pure compute functions
+   (``pipelines.stage.STAGES``), into a temporary VersionedStore (never the production store), and the record's
+   content is rebuilt from it with the same code that built it (``imulab.records.run_content``); every coefficient
+   (value, stderr and lab values to a relative tolerance of 1e-9 of max(|value|, stderr): far above float
+   round-off from a different BLAS or summation order, far below any real change), unit, test condition, stage
+   version and noise term must match;
+4. the chain: the previous record's hash matches ``prev_record_sha256``, and no record between the device's first
+   run and this one is missing or edited (records.parquet and the archive name the runs that must be there).
+Every difference is printed by name; the exit code is 1 when anything differs (2 for unusable input).
+"""
+
+import json
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import click
+
+from imulab.records import (
+    FLOAT_RTOL,
+    SCHEMA_PATH,
+    StoreView,
+    chain_problems,
+    content_differences,
+    load_record,
+    load_records_dir,
+    run_content,
+    run_order_key,
+    self_hash_problem,
+)
+
+
+def schema_problems(record: dict) -> list[str]:
+    """JSON Schema validation (needs the ``jsonschema`` package; without it, only the hash and content checks run)."""
+    try:
+        import jsonschema
+    except ImportError:  # pragma: no cover - optional dependency
+        return []
+    schema = json.loads(SCHEMA_PATH.read_text())
+    v = jsonschema.Draft202012Validator(schema)
+    return [f"schema: {'/'.join(map(str, e.absolute_path)) or 'top level'}: {e.message}"
+            for e in sorted(v.iter_errors(record), key=lambda e: list(map(str, e.absolute_path)))]
+
+
+def raw_file_problems(record: dict, run_dir: Path) -> list[str]:
+    from raw_schemas.readers import sha256_file
+
+    recorded = record["content"]["raw_files"]
+    if not run_dir.is_dir():
+        return [f"raw run folder {run_dir} not found"]
+    present = {p.name: p for p in sorted(run_dir.iterdir()) if p.is_file()}
+    out = []
+    for name in sorted(set(recorded) | set(present)):
+        if name not in present:
+            out.append(f"raw file {name}: recorded sha256 {recorded[name]}, missing from {run_dir}")
+        elif name not in recorded:
+            out.append(f"raw file {name}: in {run_dir} but not in the record")
+        else:
+            got = sha256_file(present[name])
+            if got != recorded[name]:
+                out.append(f"raw file {name}: recorded sha256 {recorded[name]}, archive file has {got}")
+    return out
+
+
+def recompute_capture(key: str, landing: Path, store, stages: set[str]) -> dict[str, str]:
+    """Run the capture-level stages in ``stages`` (and what they need) for ``key`` into ``store``; returns the
+    versions written. Mirrors ``pipelines.stage.run_stage`` without Dagster."""
+    import pipelines.definitions  # noqa: F401 - registers every stage in STAGES
+    from pipelines.resources import LabArchive
+    from pipelines.stage import STAGES, StageInputs, expected_version, input_versions
+
+    needed, todo = set(), [s for s in stages if s in STAGES]
+    while todo:
+        s = todo.pop()
+        if s not in needed and STAGES[s].level == "capture":
+            needed.add(s)
+            todo += list(STAGES[s].upstream)
+    archive = LabArchive(landing_dir=str(landing))
+    versions = {}
+    for name, spec in STAGES.items():  # registration order is dependency order
+        if name not in needed:
+            continue
+        inputs = input_versions(spec, key, store, archive)
+        if inputs is None:
+            continue
+        if spec.applies_to is not None:
+            kind = store.read_meta("ingested_run", key).get("test_kind") if f"ingested_run/{key}" in versions else None
+            if kind not in spec.applies_to:
+                continue
+        version = expected_version(spec, inputs)
+        out = spec.compute(key, StageInputs(store, archive, key, inputs))
+        if out is None:
+            continue
+        files = dict(out.files)
+        files.update({f"{n}.png": png for n, png in out.plots.items()})
+        store.write(spec.name, key, version, out.tables,
+                    meta={"code_version": spec.code_version, "inputs": inputs, **out.meta}, files=files)
+        versions[f"{name}/{key}"] = version
+    return versions
+
+
+def recompute_problems(record: dict, landing: Path, rtol: float) -> tuple[list[str], int]:
+    """Rebuild the record's content from the raw archive in a temporary store; named differences and the number of
+    coefficients compared."""
+    from pipelines.storage import VersionedStore
+
+    c = record["content"]
+    key = f"{c['device']['id']}__{c['run']['run_id']}"
+    with tempfile.TemporaryDirectory(prefix="imulab-verify-") as tmp:
+        store = VersionedStore(Path(tmp))
+        try:
+            versions = recompute_capture(key, landing, store, set(c["stages"]))
+            if f"ingested_run/{key}" not in versions:
+                return [f"recomputation: run {key} could not be ingested from {landing}"], 0
+            fresh = run_content(StoreView(store, versions), key, c.get("prev_record_sha256"), c.get("software", {}))
+        except Exception as e:  # noqa: BLE001 - any failure of the recomputation is a verification failure
+            return [f"recomputation from the raw archive failed: {type(e).__name__}: {e}"], 0
+    return content_differences(c, fresh, rtol), len(fresh["coefficients"])
+
+
+def chain_source(record_path: Path, device: str, store_dir: Path) -> Path | None:
+    """Folder holding the device's chain: the record's own folder when it is a record version folder, else the
+    device's current ``calibration_record`` version in the store."""
+    if (record_path.parent / "records.parquet").is_file():
+        return record_path.parent
+    from pipelines.storage import VersionedStore
+
+    st = VersionedStore(store_dir)
+    v = st.current_version("calibration_record", device)
+    return st.version_dir("calibration_record", device, v) if v else None
+
+
+def archive_runs(landing: Path, store_dir: Path, device: str) -> list[tuple[str, str]]:
+    """(run_id, start_time_utc) of the device's runs that are in the archive and were ingested into the store."""
+    from pipelines.storage import VersionedStore
+
+    st = VersionedStore(store_dir)
+    out = []
+    for p in sorted((landing / device).iterdir()) if (landing / device).is_dir() else []:
+        key = f"{device}__{p.name}"
+        if p.is_dir() and st.current_version("ingested_run", key):
+            out.append((p.name, st.read_meta("ingested_run", key).get("start_time_utc", "")))
+    return out
+
+
+def verify_record(record: dict, landing: Path, rtol: float, recompute: bool = True) -> list[str]:
+    problems = schema_problems(record)
+    if (p := self_hash_problem(record)) is not None:
+        problems.append(p)
+    c = record.get("content", {})
+    try:
+        run_dir = landing / c["device"]["id"] / c["run"]["run_id"]
+    except (KeyError, TypeError):
+        return problems + ["record has no device id / run id"]
+    problems += raw_file_problems(record, run_dir)
+    if recompute:
+        diffs, _ = recompute_problems(record, landing, rtol)
+        problems += diffs
+    return problems
+
+
+@click.command("verify")
+@click.argument("record_path", metavar="RECORD", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("--archive", "landing", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Landing folder of the lab archive. Default: <data>/landing.")
+@click.option("--store", "store_dir", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="The production store (read only; the chain and the ingested runs). Default: <data>/store.")
+@click.option("--data-dir", default="imulab_data", show_default=True, help="Working folder of `imulab run`.")
+@click.option("--shallow", is_flag=True,
+              help="Earlier records of the chain: check hashes, links and raw file hashes only (no recomputation).")
+@click.option("--rtol", type=float, default=FLOAT_RTOL, show_default=True,
+              help="Relative tolerance of recomputed numbers (of max(|value|, stderr)).")
+def command(record_path: Path, landing, store_dir, data_dir, shallow, rtol):
+    """Recompute RECORD (a calibration record JSON) from the raw archive and check it and its hash chain.
+
+    Re-hashes the raw files, re-runs ingestion and the fits through the pipeline's own stage functions into a
+    temporary store (never the production store), compares every coefficient, and checks that the previous
+    record's hash matches and every earlier record of the device verifies. Exit code 1 names what differs.
+    """
+    warnings.filterwarnings("ignore")
+    data = Path(data_dir)
+    landing = Path(landing or data / "landing").resolve()
+    store_dir = Path(store_dir or data / "store").resolve()
+    try:
+        record = load_record(record_path)
+        device, run_id = record["content"]["device"]["id"], record["content"]["run"]["run_id"]
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        click.echo(f"FAIL {record_path}: not a calibration record ({type(e).__name__}: {e})", err=True)
+        sys.exit(2)
+    click.echo(f"record {device}/{run_id} ({record_path})")
+    click.echo(f"  sha256 {record.get('record_sha256')}")
+    failures: list[str] = []
+
+    def report(label: str, problems: list[str], limit: int = 40) -> None:
+        for p in problems[:limit]:
+            click.echo(f"  FAIL {p}")
+        if len(problems) > limit:
+            click.echo(f"  FAIL ... and {len(problems) - limit} more differences")
+        if not problems:
+            click.echo(f"  ok   {label}")
+        failures.extend(problems)
+
+    report("schema and content hash", schema_problems(record) + [p for p in [self_hash_problem(record)] if p])
+    run_dir = landing / device / run_id
+    report(f"raw files ({len(record['content'].get('raw_files', {}))}) match {run_dir}", raw_file_problems(record, run_dir))
+    diffs, n = recompute_problems(record, landing, rtol)
+    report(f"recomputed from the raw archive: {n} coefficients and all conditions match (rtol {rtol:g})", diffs)
+
+    chain_dir = chain_source(record_path, device, store_dir)
+    if chain_dir is None:
+        report("chain", [f"no stored records of device {device} in {store_dir} to check the chain against"])
+    else:
+        records, listing = load_records_dir(chain_dir)
+        stored = records.get(run_id)
+        if stored is not None and stored.get("record_sha256") != record.get("record_sha256") \
+                and Path(record_path).resolve().parent != chain_dir.resolve():
+            failures.append(f"the stored chain's record of run {run_id} has sha256 {stored.get('record_sha256')}, "
+                            "not this record's")
+            click.echo(f"  FAIL {failures[-1]}")
+        records[run_id] = record
+        expected = archive_runs(landing, store_dir, device)
+        probs = chain_problems(records, listing, expected, up_to_run=run_id)
+        limit = run_order_key(record["content"]["run"]["start_time_utc"], run_id)
+        earlier = sorted((r for rid, r in records.items() if rid != run_id and "content" in r
+                          and run_order_key(r["content"]["run"]["start_time_utc"], rid) < limit),
+                         key=lambda r: run_order_key(r["content"]["run"]["start_time_utc"], r["content"]["run"]["run_id"]))
+        report(f"hash chain of {device} up to {run_id}: {len(earlier) + 1} records, links intact ({chain_dir})", probs)
+        for r in earlier:
+            rid = r["content"]["run"]["run_id"]
+            p = verify_record(r, landing, rtol, recompute=not shallow)
+            report(f"earlier record {rid} verifies" + (" (hashes only)" if shallow else ""),
+                   [f"earlier record {rid}: {x}" for x in p])
+    if failures:
+        click.echo(f"FAILED: {len(failures)} problem(s) with the record of {device}/{run_id}")
+        sys.exit(1)
+    click.echo(f"VERIFIED: the record of {device}/{run_id} matches the raw archive and its chain is intact")
