@@ -775,6 +775,7 @@ def plateau_columns() -> list[str]:
     cols += ["temperature_degc_mean"]
     cols += [f"omega_ref_{a}_radps" for a in "xyz"] + [f"omega_earth_{a}_radps" for a in "xyz"]
     cols += [f"f_ref_{a}_mps2" for a in "xyz"] + ["flagged", "flag_reason"]
+    cols += [f"{ch}_flicker_b" for ch in CHANNELS]  # run's pooled bias instability B (channel units)
     return cols
 
 
@@ -952,6 +953,8 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     df["n_samples"] = df["n_samples"].astype(np.int64)
     df["n_rejected"] = df["n_rejected"].astype(np.int64)
     df["flagged"] = df["flagged"].astype(bool)
+    for ch, fit in noise_fits.items():  # IEEE 952 C.3: flicker plateau (2 ln2 / pi) B^2 -> B, shared by the run
+        df[f"{ch}_flicker_b"] = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
     return SegmentationResult(df, method, alignment, detection, shifts, tuple(unmatched), window_step, keep,
                               noise_fits, tuple(warnings))
 

@@ -1,0 +1,637 @@
+"""Weighted least squares with identifiability analysis, automatic exclusions and honest covariance.
+
+The engine behind every calibration fit (gyro rate fit, accelerometer multi-position fit, the seed 001
+plateau-mean fits). Pure numpy/scipy.
+
+Identifiability (which coefficients a schedule observes)
+    Each design column is divided by a physical full-scale (max |input| over the design for rate columns,
+    g for specific-force columns, g^2 for second-order columns, 1 for the bias column), so a fully excited
+    column has entries of order one. Columns are then orthogonalised one by one in a fixed physical
+    priority order (bias, scale factor, misalignment, then the optional second-order / g-sensitivity terms;
+    a column-pivoted QR whose pivot order is prescribed). A column whose RMS excitation orthogonal to the
+    columns accepted before it is below ``rel_tol`` (default 1e-3 of full scale) is *not observable*: its
+    value is reported as NaN with ``observable=False`` and the reason (not excited, or only a combination
+    with named columns is observable) instead of a noise-dominated number. The default 1e-3 is set by the
+    reference inputs: table-axis alignment (~20 arcsec = 1e-4), rate accuracy and the modelled earth-rate
+    projection are good to ~1e-4 of full scale, so an excitation below 1e-3 of full scale would let those
+    modelling errors bias the coefficient by >10 %.
+    If a rejected column lies in the span of accepted *optional* columns, those optional columns are rejected
+    too: their estimates would silently absorb the unobservable term (e.g. g-sensitivity on three mutually
+    exclusive orientations plus a bias column). Absorption into core columns (e.g. K2 into the bias when no
+    position has the sensing axis horizontal) is the textbook behaviour and is stated in the reason.
+
+Exclusions
+    Rows may be pre-excluded (segmentation flags, saturation). Then, iteratively, the externally studentized
+    residual (leave-one-out, Belsley-Kuh-Welsch) of every testable row is compared with the Bonferroni
+    critical value t_{1 - alpha / (2 n)}(dof - 1), alpha = 0.01 family-wise; the worst row beyond it is excluded and the fit repeated,
+    at most ``max_exclusion_fraction`` of the rows (Cook & Weisberg 1982, sec. 2.2.1: Bonferroni outlier test).
+    The scale of the test is the residual scatter, not the plateau standard errors, so a genuine smooth
+    nonlinearity (systematic residuals everywhere) does not turn the end plateaus into "outliers".
+
+Correlated noise between plateaus (``times``)
+    When the plateau times are known, the final fit is a GLS with Sigma = diag(sem^2 - 2 ln2 tau^2) + tau^2 G,
+    G the covariance shape of window means of 1/f (bias-instability) noise relative to the run mean plus the
+    Allan floor at the run length, and tau^2 = B^2 / pi estimated by REML (:func:`flicker_gls`). Bias
+    instability makes low-frequency contrasts (positions minutes apart) noisier than independent sems promise
+    while the plateau-to-plateau scatter does not show it; in the full-chain Monte Carlo this lifts the
+    accelerometer coverage from ~0.88 to ~0.93 and the pooled coverage to ~0.95.
+
+Covariance (``cov_policy``)
+    With plateau standard errors sigma (``*_sem``) the fit is weighted (W = 1/sigma^2): the sems set the
+    *relative* weights. The overall variance factor phi of C = phi (A^T W A)^-1 is then estimated by pooling
+    the two sources of information about it ("pooled"): the sems' own absolute level, treated as a prior
+    estimate phi = 1 worth nu_0 = 4 degrees of freedom, and the residual chi-square with nu = n - p:
+    phi = (nu_0 + chi^2) / (nu_0 + nu), intervals Student-t with nu_0 + nu dof (the conjugate scaled-inverse-
+    chi^2 update; GUM 4.2 / G.4 Type A with effective degrees of freedom). Why not the sems alone: they describe
+    the noise *within* a plateau (segmentation's Allan-based sem), not what varies *between* plateaus over a
+    run (bias instability and rate random walk across minutes, table and fixture errors, temperature), and an
+    underestimate of 15-30 % costs 2-3 points of coverage. Why not the scatter alone: with few dof (a 6-position
+    plan has one) it is too noisy, and nu_0 = 4 (~ +/-35 % on sigma) keeps it in check. Why not "the larger of
+    the two": it over-covers (~96.5 % at nu = 17) when the sems are right. A chi-square consistency test
+    (p < 0.001) adds a warning naming the likely causes (Cox 2002, Metrologia 39:589). Without sems, ordinary
+    least squares with phi = RSS/nu and Student-t(nu) intervals ("residual").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+DEFAULT_REL_TOL = 1e-3
+DEFAULT_ALPHA = 0.01  # family-wise level of the Bonferroni outlier test (false exclusion in ~1 % of fits)
+DEFAULT_SEM_PRIOR_DOF = 4.0  # degrees of freedom given to the plateau sems' absolute level (~ +/-35 % on sigma)
+
+
+@dataclass(frozen=True, eq=False)
+class Identifiability:
+    """Seed 003 eq. 3 pre-check: which columns of x = (A^T A)^-1 A^T b the schedule determines."""
+
+    observable: np.ndarray  # (p,) bool
+    excitation: np.ndarray  # (p,) RMS orthogonal excitation in full-scale units
+    reason: tuple[str, ...]  # '' when observable
+    condition_number: float  # of the scaled design restricted to the observable columns
+
+
+@dataclass(frozen=True, eq=False)
+class LinearFit:
+    """Result of :func:`fit_linear`: parameters in the units of the unscaled design."""
+
+    names: tuple[str, ...]
+    value: np.ndarray  # (p,), NaN where not observable
+    cov: np.ndarray  # (p, p), NaN rows/cols where not observable
+    observable: np.ndarray
+    unobservable_reason: tuple[str, ...]
+    excitation: np.ndarray
+    condition_number: float
+    used: np.ndarray  # (n,) bool
+    exclusion_reason: tuple[str, ...]  # per row, '' when used
+    exclusion_kind: tuple[str, ...]  # per row: '', 'pre', 'outlier', 'invalid'
+    fitted: np.ndarray  # (n,) model prediction for every row (used or not)
+    residual: np.ndarray  # (n,) y - fitted
+    sigma: np.ndarray | None  # (n,) plateau standard errors given
+    std_residual: np.ndarray  # (n,) externally studentized (used rows) / prediction-standardized (excluded)
+    leverage: np.ndarray  # (n,) hat diagonal (NaN for excluded rows)
+    n_used: int
+    dof: int
+    chi2: float  # weighted residual sum of squares (RSS when unweighted)
+    chi2_pvalue: float
+    scale: float  # variance factor applied to (A^T W A)^-1
+    cov_policy: str  # 'pooled' (sems + scatter) | 'residual' (no sems) | 'none'
+    outlier_critical: float  # last Bonferroni critical value used (NaN if no test)
+    warnings: tuple[str, ...] = field(default=())
+    sem_prior_dof: float = 0.0
+    flicker_tau2: float = 0.0  # REML variance of the 1/f (bias instability) component between plateaus
+
+    @property
+    def stderr(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.cov))
+
+    @property
+    def k95(self) -> float:
+        """Coverage factor of a 95 % interval: Student-t with the variance factor's degrees of freedom."""
+        if self.cov_policy == "pooled":
+            return float(stats.t.ppf(0.975, self.dof + self.sem_prior_dof))
+        if self.cov_policy == "residual" and self.dof > 0:
+            return float(stats.t.ppf(0.975, self.dof))
+        return float(stats.norm.ppf(0.975))
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def get(self, name: str) -> tuple[float, float]:
+        i = self.names.index(name)
+        return float(self.value[i]), float(np.sqrt(self.cov[i, i]))
+
+    def predict_variance(self, A: np.ndarray) -> np.ndarray:
+        """Variance of the fitted mean at design rows ``A`` (observable columns only)."""
+        obs = self.observable
+        Ao = np.asarray(A, float)[:, obs]
+        C = self.cov[np.ix_(obs, obs)]
+        return np.einsum("ij,jk,ik->i", Ao, C, Ao)
+
+
+def identifiability(
+    A_scaled: np.ndarray,
+    names: tuple[str, ...] | list[str],
+    optional: np.ndarray | None = None,
+    rel_tol: float = DEFAULT_REL_TOL,
+    forced_out: set[int] | None = None,
+    nuisance: np.ndarray | None = None,
+) -> Identifiability:
+    """Priority-ordered Gram-Schmidt (prescribed-pivot QR) of the scaled design; see the module docstring.
+
+    Columns are taken in the given order (the priority order). ``optional`` marks columns that are dropped
+    when a rejected column would be absorbed into them.
+    """
+    A = np.asarray(A_scaled, float)
+    n, p = A.shape
+    optional = np.zeros(p, bool) if optional is None else np.asarray(optional, bool)
+    nuisance = np.zeros(p, bool) if nuisance is None else np.asarray(nuisance, bool)
+    names = tuple(names)
+    forced_reason: dict[int, str] = {j: "not estimated" for j in (forced_out or ())}
+    root_n = np.sqrt(max(n, 1))
+    for _ in range(p + 1):
+        accepted: list[int] = []
+        Q = np.zeros((n, 0))
+        exc = np.zeros(p)
+        reason = [""] * p
+        for j in range(p):
+            a = A[:, j]
+            r = a - Q @ (Q.T @ a)
+            r = r - Q @ (Q.T @ r)
+            exc[j] = np.linalg.norm(r) / root_n
+            if j in forced_reason or exc[j] < rel_tol or n == 0:
+                continue
+            accepted.append(j)
+            Q = np.column_stack([Q, r / np.linalg.norm(r)])
+        new_forced = False
+        for j in (j for j in range(p) if j not in accepted):
+            if j in forced_reason:
+                reason[j] = forced_reason[j]
+                continue
+            a = A[:, j]
+            size = np.linalg.norm(a) / root_n
+            if size < rel_tol or not accepted:
+                reason[j] = (
+                    f"not excited by this schedule (RMS excitation {size:.1e} of full scale < {rel_tol:.0e}); "
+                    "not estimated"
+                )
+                continue
+            Aa = A[:, accepted]
+            c = np.linalg.lstsq(Aa, a, rcond=None)[0]
+            contrib = np.abs(c) * np.linalg.norm(Aa, axis=0) / root_n
+            partners = [accepted[k] for k in np.flatnonzero(contrib > rel_tol)]
+            pn = ", ".join(names[k] for k in partners) or "none"
+            reason[j] = (
+                f"not separable from [{pn}] with this schedule (orthogonal excitation {exc[j]:.1e} < {rel_tol:.0e}); "
+                f"not estimated, its effect is absorbed into [{pn}]"
+            )
+            if nuisance[j]:
+                continue  # a nuisance column only absorbs what it can; it never forces others out
+            if any(optional[k] and not nuisance[k] for k in partners) and j not in forced_reason:
+                forced_reason[j] = reason[j]
+                new_forced = True
+            for k in partners:
+                if optional[k] and not nuisance[k] and k not in forced_reason:
+                    forced_reason[k] = (
+                        f"not estimated: confounded with the unobservable {names[j]} in this schedule "
+                        f"(its estimate would absorb {names[j]})"
+                    )
+                    new_forced = True
+        if not new_forced:
+            break
+    obs = np.zeros(p, bool)
+    obs[accepted] = True
+    if accepted:
+        sv = np.linalg.svd(A[:, accepted], compute_uv=False)
+        cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    else:
+        cond = float("nan")
+    return Identifiability(observable=obs, excitation=exc, reason=tuple(reason), condition_number=cond)
+
+
+def _solve(Aw: np.ndarray, yw: np.ndarray):
+    """Least squares via thin QR on column-equilibrated weighted design; returns x, (Aw^T Aw)^-1, hat diag."""
+    norms = np.linalg.norm(Aw, axis=0)
+    norms[norms == 0] = 1.0
+    B = Aw / norms
+    Q, R = np.linalg.qr(B, mode="reduced")
+    x = np.linalg.solve(R, Q.T @ yw) / norms
+    Rinv = np.linalg.solve(R, np.eye(R.shape[0]))
+    C = (Rinv @ Rinv.T) / np.outer(norms, norms)
+    h = np.sum(Q**2, axis=1)
+    return x, C, h
+
+
+def fit_linear(
+    A: np.ndarray,
+    y: np.ndarray,
+    names: tuple[str, ...] | list[str],
+    *,
+    sigma: np.ndarray | None = None,
+    scales: np.ndarray | None = None,
+    optional: np.ndarray | None = None,
+    rel_tol: float = DEFAULT_REL_TOL,
+    pre_excluded: dict[int, str] | None = None,
+    outlier_test: bool = True,
+    alpha: float = DEFAULT_ALPHA,
+    sem_prior_dof: float = DEFAULT_SEM_PRIOR_DOF,
+    max_exclusion_fraction: float = 0.25,
+    outlier_note=None,
+    screen_columns: np.ndarray | None = None,
+    nuisance: np.ndarray | None = None,
+    times: tuple[np.ndarray, np.ndarray] | None = None,
+    flicker_tau2: float | None = None,
+) -> LinearFit:
+    """Seed 003 eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
+
+    ``A`` (n, p) design in physical units, columns in priority order; ``y`` (n,) observations; ``sigma`` (n,)
+    standard errors of the observations (plateau sems) or None; ``scales`` (p,) physical full-scale of each
+    column (defaults to the column max-abs); ``pre_excluded`` {row: reason} rows not to use;
+    ``outlier_note(row, residual, used_mask) -> str`` may add context to an outlier's reason.
+    ``times`` (t_mid_s, t_len_s) of every row: enables the correlated-noise (1/f) GLS of :func:`flicker_gls` for
+    the final fit (needs sems and a constant column).
+    ``nuisance`` (p,) bool: columns that absorb what they can (kept while linearly independent, never forcing
+    other columns out); a caller reports them only when the whole nuisance group is observable.
+    ``screen_columns`` (n, m): extra smooth nuisance regressors used only by the outlier test (e.g. |w|, w^2,
+    w^3 on a rate sweep), so that a genuine systematic signature (nonlinearity, asymmetry) is not mistaken for
+    isolated outliers; the reported fit uses the base model and its chi-square check / Birge inflation then
+    carries the systematic misfit into the uncertainties.
+    """
+    A = np.asarray(A, float)
+    y = np.asarray(y, float)
+    n, p = A.shape
+    names = tuple(names)
+    if scales is None:
+        scales = np.max(np.abs(A), axis=0) if n else np.ones(p)
+        scales = np.where(scales > 0, scales, 1.0)
+    scales = np.asarray(scales, float)
+    sig = None if sigma is None else np.asarray(sigma, float)
+    reason = [""] * n
+    kind = [""] * n
+    used = np.ones(n, bool)
+    bad = ~np.isfinite(y) | ~np.all(np.isfinite(A), axis=1)
+    if sig is not None:
+        bad |= ~np.isfinite(sig) | (sig <= 0)
+    for i in np.flatnonzero(bad):
+        used[i] = False
+        reason[i] = "invalid: non-finite mean, reference or standard error"
+        kind[i] = "invalid"
+    for i, r in (pre_excluded or {}).items():
+        if used[i]:
+            used[i] = False
+            reason[i] = r
+            kind[i] = "pre"
+    warnings: list[str] = []
+    n_out_max = int(np.floor(max_exclusion_fraction * used.sum()))
+    n_out = 0
+    crit = float("nan")
+    As = A / scales
+    nuis_base = np.zeros(p, bool) if nuisance is None else np.asarray(nuisance, bool)
+
+    def wfit(Am, Ams, nm, opt):
+        nu = np.r_[nuis_base, np.ones(Am.shape[1] - p, bool)]
+        ident = identifiability(Ams[used], nm, opt, rel_tol, nuisance=nu)
+        obs = ident.observable
+        idx = np.flatnonzero(used)
+        w = np.ones(len(idx)) if sig is None else 1.0 / sig[idx]
+        Aw = Am[np.ix_(idx, np.flatnonzero(obs))] * w[:, None]
+        yw = y[idx] * w
+        k = int(obs.sum())
+        if k == 0:
+            x, C0, h = np.zeros(0), np.zeros((0, 0)), np.zeros(len(idx))
+        else:
+            x, C0, h = _solve(Aw, yw)
+        rw = yw - Aw @ x if k else yw.copy()
+        return ident, obs, idx, w, x, C0, h, rw, float(rw @ rw), k, len(idx) - k
+
+    opt_base = np.zeros(p, bool) if optional is None else np.asarray(optional, bool)
+    if screen_columns is not None and np.asarray(screen_columns).size:
+        S = np.asarray(screen_columns, float).reshape(n, -1)
+        s_sc = np.max(np.abs(S), axis=0)
+        s_sc = np.where(s_sc > 0, s_sc, 1.0)
+        A_scr = np.column_stack([A, S])
+        As_scr = np.column_stack([As, S / s_sc])
+        n_scr = names + tuple(f"screen_{m}" for m in range(S.shape[1]))
+        o_scr = np.r_[opt_base, np.ones(S.shape[1], bool)]
+    else:
+        A_scr, As_scr, n_scr, o_scr = A, As, names, opt_base
+    def studentized(fitres):
+        _, _, idx, w, _, _, h, rw, chi2, _, dof = fitres
+        if dof < 3 or chi2 <= 0:
+            return None
+        testable = h < 1.0 - 1e-9
+        s2_del = (chi2 - rw**2 / np.where(testable, 1 - h, 1.0)) / (dof - 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_ext = rw / np.sqrt(np.maximum(s2_del, 1e-300) * (1 - h))
+        t_ext[~testable] = 0.0
+        crit = float(stats.t.ppf(1 - alpha / (2 * len(idx)), dof - 1))
+        return t_ext, crit, dof
+
+    screened = A_scr is not A
+    while outlier_test and n_out < n_out_max:
+        base = wfit(A, As, names, opt_base)
+        tb = studentized(base)
+        if tb is None:
+            break
+        t_ext, crit, dof_t = tb
+        score = np.abs(t_ext) / crit
+        if screened:
+            # an outlier must stand out both from the straight model and from the smooth-systematic screen model
+            ts = studentized(wfit(A_scr, As_scr, n_scr, o_scr))
+            if ts is not None:
+                score = np.minimum(score, np.abs(ts[0]) / ts[1])
+        j = int(np.argmax(score))
+        if score[j] <= 1.0:
+            break
+        idx, w, rw = base[2], base[3], base[7]
+        row = int(idx[j])
+        used[row] = False
+        kind[row] = "outlier"
+        note = outlier_note(row, float(rw[j] / w[j]), used.copy()) if outlier_note else ""
+        reason[row] = (
+            f"outlier: externally studentized residual {t_ext[j]:+.1f} beyond the Bonferroni critical value "
+            f"{crit:.2f} (alpha {alpha:g}, n {len(idx)}, dof {dof_t - 1})"
+            + (" and also beyond it against smooth nonlinearity/asymmetry terms" if screened else "")
+            + (f"; {note}" if note else "")
+        )
+        n_out += 1
+    ident, obs, idx, w, x, C0, h, rw, chi2, k, dof = wfit(A, As, names, opt_base)
+    tau2 = 0.0
+    if times is not None and sig is not None and k and dof >= 3:
+        t_mid, t_len = (np.asarray(v, float) for v in times)
+        X = A[np.ix_(idx, np.flatnonzero(obs))]
+        if np.all(np.isfinite(t_mid[idx])) and np.all(np.isfinite(t_len[idx])) and np.any(np.all(X == X[0], axis=0)):
+            tau2, gx, gC, gchi2 = flicker_gls(X, y[idx], sig[idx], t_mid[idx], t_len[idx], tau2=flicker_tau2)
+            if tau2 > 0:
+                x, C0, chi2 = gx, gC, gchi2
+    if outlier_test and n_out >= n_out_max and n_out > 0:
+        warnings.append(
+            f"outlier exclusion stopped at the limit of {n_out_max} rows ({max_exclusion_fraction:.0%}); "
+            "the model may be inadequate for these data"
+        )
+    # covariance policy (module docstring): sems pooled with the residual chi-square
+    pval = float(stats.chi2.sf(chi2, dof)) if (k and dof > 0 and sig is not None) else float("nan")
+    if k and sig is not None:
+        scale, policy = (sem_prior_dof + chi2) / (sem_prior_dof + dof), "pooled"
+        if np.isfinite(pval) and pval < 1e-3:
+            warnings.append(
+                f"residual scatter significantly exceeds the plateau standard errors (chi2 {chi2:.3g} for {dof} dof, "
+                f"p = {pval:.1e}): unmodelled effects or underestimated sems; uncertainties scaled by the scatter"
+            )
+    elif k and dof > 0:
+        scale, policy = chi2 / dof, "residual"
+    elif k:
+        scale, policy = float("nan"), "none"
+        warnings.append("no degrees of freedom left and no standard errors given: uncertainties unknown")
+    else:
+        scale, policy = float("nan"), "none"
+    value = np.full(p, np.nan)
+    cov = np.full((p, p), np.nan)
+    oi = np.flatnonzero(obs)
+    if k:
+        value[oi] = x
+        cov[np.ix_(oi, oi)] = C0 * scale
+    fitted = A[:, oi] @ x if k else np.zeros(n)
+    resid = y - fitted
+    # standardized residuals
+    std_res = np.full(n, np.nan)
+    lev = np.full(n, np.nan)
+    lev[idx] = h
+    if k and dof > 1:
+        rw_u = resid[idx] * w
+        s2_del = (chi2 - rw_u**2 / np.maximum(1 - h, 1e-12)) / (dof - 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = rw_u / np.sqrt(np.maximum(s2_del, 1e-300) * np.maximum(1 - h, 1e-12))
+        t[h >= 1 - 1e-9] = np.nan
+        std_res[idx] = t
+    ex = np.flatnonzero(~used & np.all(np.isfinite(A), axis=1) & np.isfinite(y))
+    if k and len(ex):
+        pv = np.einsum("ij,jk,ik->i", A[np.ix_(ex, oi)], cov[np.ix_(oi, oi)], A[np.ix_(ex, oi)])
+        if sig is not None:
+            noise = sig[ex] ** 2 * (scale if np.isfinite(scale) else 1.0)
+        else:
+            noise = np.full(len(ex), scale)
+        with np.errstate(invalid="ignore"):
+            std_res[ex] = resid[ex] / np.sqrt(pv + noise)
+    return LinearFit(
+        names=names,
+        value=value,
+        cov=cov,
+        observable=obs,
+        unobservable_reason=ident.reason,
+        excitation=ident.excitation,
+        condition_number=ident.condition_number,
+        used=used,
+        exclusion_reason=tuple(reason),
+        exclusion_kind=tuple(kind),
+        fitted=fitted,
+        residual=resid,
+        sigma=sig,
+        std_residual=std_res,
+        leverage=lev,
+        n_used=int(used.sum()),
+        dof=int(dof),
+        chi2=chi2,
+        chi2_pvalue=pval,
+        scale=float(scale),
+        cov_policy=policy,
+        outlier_critical=crit,
+        warnings=tuple(warnings),
+        sem_prior_dof=float(sem_prior_dof if policy == "pooled" else 0.0),
+        flicker_tau2=float(tau2),
+    )
+
+
+def log_kernel(t_mid: np.ndarray, t_len: np.ndarray) -> np.ndarray:
+    """Covariance shape of window means of 1/f (flicker, bias-instability) noise, up to a constant.
+
+    1/f noise has the generalized covariance -ln|u - v| (conditionally positive definite on contrasts; the
+    constant is absorbed by the bias column). Between windows i != j the mean of -ln|u - v| over both windows is
+    taken at the centres (-ln|t_i - t_j|, exact to O((T/dt)^2)); within a window of length T it is -ln T + 3/2.
+    A constant ln(span) keeps the matrix positive for the numerical work.
+    """
+    t = np.asarray(t_mid, float)
+    T = np.maximum(np.asarray(t_len, float), 1e-9)
+    span = float(np.ptp(t) + T.max()) * np.e
+    d = np.abs(t[:, None] - t[None, :])
+    dmin = 0.5 * (T[:, None] + T[None, :])
+    G = np.log(span / np.maximum(d, dmin))
+    np.fill_diagonal(G, np.log(span / T) + 1.5)
+    return G
+
+
+def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray,
+                tau2: float | None = None):
+    """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML (Patterson-Thompson).
+
+    Bias instability (flicker) makes plateau errors correlated over the run: low-frequency contrasts (up vs down
+    positions several minutes apart) do not average down as independent sems promise, and the residual scatter,
+    dominated by plateau-to-plateau differences, does not show it. The REML amplitude of the 1/f component
+    restores the right variance for such contrasts. Returns (tau2, x, (X^T S^-1 X)^-1, r^T S^-1 r); tau2 = 0
+    means plain WLS.
+    """
+    from scipy.optimize import minimize_scalar
+
+    D0 = sig**2
+    G = log_kernel(t_mid, t_len)
+    # deviations from the run mean (double-centred kernel), plus the run mean's own wander at the Allan floor
+    # sigma_A^2(T_run) = 2 ln2 tau^2: the bias estimate is uncertain by the bias instability at the run length
+    white = 2.0 * np.log(2.0)  # Allan floor of 1/f noise: (2 ln2 / pi) B^2 = 2 ln2 tau^2
+    G = G - G.mean(axis=0, keepdims=True) - G.mean(axis=1, keepdims=True) + G.mean() + white
+    n, p = X.shape
+    scale = float(np.median(D0))
+
+    def parts(tau2):
+        D = np.maximum(D0 - white * tau2, 0.1 * D0)
+        S = np.diag(D) + tau2 * G
+        L = np.linalg.cholesky(S)
+        Xw = np.linalg.solve(L, X)
+        yw = np.linalg.solve(L, y)
+        Q, R = np.linalg.qr(Xw)
+        x = np.linalg.solve(R, Q.T @ yw)
+        r = yw - Xw @ x
+        return L, R, x, r
+
+    def nll(log_ratio):
+        tau2 = scale * np.exp(log_ratio)
+        try:
+            L, R, x, r = parts(tau2)
+        except np.linalg.LinAlgError:
+            return np.inf
+        return 2 * np.sum(np.log(np.diag(L))) + 2 * np.sum(np.log(np.abs(np.diag(R)))) + float(r @ r)
+
+    if tau2 is not None:
+        if tau2 <= 0:
+            return 0.0, None, None, None
+        L, R, x, r = parts(float(tau2))
+        Rinv = np.linalg.solve(R, np.eye(p))
+        return float(tau2), x, Rinv @ Rinv.T, float(r @ r)
+    try:
+        base = nll(-30.0)
+        res = minimize_scalar(nll, bounds=(-12.0, 6.0), method="bounded", options={"xatol": 1e-3})
+        if not res.success or res.fun >= base - 1e-9:
+            return 0.0, None, None, None
+        tau2 = scale * float(np.exp(res.x))
+        L, R, x, r = parts(tau2)
+    except np.linalg.LinAlgError:
+        return 0.0, None, None, None
+    Rinv = np.linalg.solve(R, np.eye(p))
+    return tau2, x, Rinv @ Rinv.T, float(r @ r)
+
+
+def ratio_with_stderr(num: float, den: float, var_num: float, var_den: float, cov_nd: float) -> tuple[float, float]:
+    """Delta method for num/den (first order)."""
+    r = num / den
+    var = (var_num + r**2 * var_den - 2 * r * cov_nd) / den**2
+    return float(r), float(np.sqrt(max(var, 0.0)))
+
+
+def detect_saturation(
+    x: np.ndarray,
+    y: np.ndarray,
+    sigma: np.ndarray | None = None,
+    *,
+    gain_ratio: float = 0.5,
+    n_sigma: float = 5.0,
+    rail: bool = True,
+    sample_sigma: np.ndarray | None = None,
+    x_unit: str = "",
+    x_factor: float = 1.0,
+) -> dict[int, str]:
+    """Saturation at both ends of a rate sweep; returns {row: reason} (effects.md: flat tops beyond full scale).
+
+    1. Flat top. Sort by input; take the robust (Theil-Sen) gain K of the sweep. Walking inward from each end,
+       a plateau is saturated when its incremental gain to the next inner plateau is below ``gain_ratio`` * K
+       (the output has stopped following the input: no sensor loses half its gain inside its linear range)
+       *and* the output shortfall K dx - dy exceeds ``n_sigma`` standard errors of the difference (sems when
+       given, else the robust residual scale of the sweep, 1.4826 MAD).
+    2. At the rail (``rail=True``). Once an end has a flat top, its level is the rail. Walking further inward, a
+       plateau whose straight-line prediction (Theil-Sen on the remaining plateaus) comes within 3 sample
+       standard deviations of the rail has samples clipped, so its mean is biased towards the rail: it is
+       saturated too. The sample standard deviation is ``sample_sigma`` (e.g. sem * sqrt(n_samples)) or the
+       robust residual scale.
+
+    ``x_factor``/``x_unit`` only format the reason (e.g. rad/s shown in deg/s).
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    idx = np.flatnonzero(ok)
+    out: dict[int, str] = {}
+    if len(idx) < 4:
+        return out
+    xs, ys = x[idx], y[idx]
+    if np.ptp(xs) <= 0:
+        return out
+    K = stats.theilslopes(ys, xs).slope
+    if K == 0 or not np.isfinite(K):
+        return out
+    a = np.median(ys - K * xs)
+    res = ys - a - K * xs
+    s_rob = 1.4826 * np.median(np.abs(res - np.median(res)))
+    if sigma is not None:
+        sg = np.asarray(sigma, float)[idx]
+        sg = np.where(np.isfinite(sg) & (sg > 0), sg, s_rob)
+    else:
+        sg = np.full(len(idx), s_rob)
+    sg = np.maximum(sg, 1e-12 * (np.max(np.abs(ys)) + 1e-300))
+    if sample_sigma is not None:
+        ss = np.asarray(sample_sigma, float)[idx]
+        ss = np.where(np.isfinite(ss) & (ss > 0), ss, np.maximum(s_rob, sg))
+    else:
+        ss = np.maximum(s_rob, sg)
+    order = np.argsort(xs, kind="stable")
+    max_flag = len(idx) // 2
+
+    def walk(seq):
+        flagged = []
+        for m in range(len(seq) - 1):
+            j, i_in = seq[m], seq[m + 1]
+            dx = xs[j] - xs[i_in]
+            if dx == 0:
+                break
+            dy = ys[j] - ys[i_in]
+            local = dy / dx
+            shortfall = np.sign(K) * (K * dx - dy) * np.sign(dx)
+            sd = np.sqrt(sg[j] ** 2 + sg[i_in] ** 2)
+            if local / K < gain_ratio and shortfall > n_sigma * sd and len(flagged) < max_flag:
+                flagged.append((j, local, shortfall / sd))
+            else:
+                break
+        return flagged
+
+    ends = [walk(list(order[::-1])), walk(list(order))]
+    for flagged in ends:
+        for j, local, nsd in flagged:
+            out[int(idx[j])] = (
+                f"saturated: at input {xs[j] * x_factor:+.6g} {x_unit} the output has stopped following the input "
+                f"(incremental gain {local / K:.2f} of the sweep's robust gain, shortfall {nsd:.0f} sigma); "
+                "beyond the linear range"
+            )
+    if rail and any(ends):
+        keep = np.array([int(idx[k]) not in out for k in range(len(idx))])
+        if keep.sum() >= 3:
+            ts = stats.theilslopes(ys[keep], xs[keep])
+            line = ts.intercept + ts.slope * xs
+            for flagged, seq in zip(ends, (list(order[::-1]), list(order))):
+                if not flagged:
+                    continue
+                y_rail = float(np.median([ys[j] for j, _, _ in flagged]))
+                direction = np.sign(y_rail - np.median(ys))
+                inner = [k for k in seq if int(idx[k]) not in out]
+                for k in inner:
+                    gap = direction * (y_rail - line[k])  # > 0: the line stays inside the rail
+                    if gap < 3.0 * ss[k] and len(out) < max_flag:
+                        where = (f"comes within {gap / ss[k]:.1f} sample standard deviations of" if gap >= 0 else
+                                 f"lies {-gap / ss[k]:.1f} sample standard deviations beyond")
+                        out[int(idx[k])] = (
+                            f"saturated: at input {xs[k] * x_factor:+.6g} {x_unit} the straight-line output {where} "
+                            f"the rail set by the flat-top plateau(s) ({y_rail:.6g}): at the rail, clipped samples "
+                            "bias the mean"
+                        )
+                    else:
+                        break
+    return out

@@ -1,0 +1,236 @@
+"""Reporting edge of the calibration fits: tidy COEFFICIENT TABLE rows, residual tables and PNG plots.
+
+Values are SI in ``value``/``stderr``/``unit``; lab units only in ``value_lab``/``stderr_lab``/``unit_lab``:
+ppm for scale-factor error (K - 1), nonlinearity and asymmetry; deg/h for gyro bias; mg for accelerometer
+bias; arcsec for misalignment; ug/g^2 for K2 and cross-coupling; deg/h/g for gyro g-sensitivity.
+g in lab units is standard gravity (ISO 80000-3, 9.80665 m/s^2): a unit, not the local gravity.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+
+import numpy as np
+import pandas as pd
+
+from raw_schemas.units import STANDARD_GRAVITY_MPS2 as G0
+
+COEFFICIENT_COLUMNS = [
+    "device_id",
+    "run_id",
+    "sensor",
+    "axis",
+    "coefficient",
+    "value",
+    "stderr",
+    "unit",
+    "value_lab",
+    "stderr_lab",
+    "unit_lab",
+    "observable",
+    "n_plateaus",
+    "n_samples",
+    "method",
+]
+#: extra columns after the contract ones: 95 % interval (SI) with the right coverage factor, and the fit dof
+EXTRA_COEFFICIENT_COLUMNS = ["ci95_low", "ci95_high", "dof", "cov_policy", "note"]
+
+RAD_TO_ARCSEC = 180.0 / math.pi * 3600.0
+RADPS_TO_DEGPH = 180.0 / math.pi * 3600.0
+RADPS_TO_DEGPS = 180.0 / math.pi
+
+
+def units_of(sensor: str, coefficient: str) -> tuple[str, str, float, float]:
+    """(SI unit, lab unit, lab factor, lab offset): value_lab = factor * value + offset."""
+    c = coefficient
+    if c == "bias":
+        return ("rad/s", "deg/h", RADPS_TO_DEGPH, 0.0) if sensor == "gyro" else ("m/s^2", "mg", 1e3 / G0, 0.0)
+    if c in ("scale_factor", "scale_factor_pos", "scale_factor_neg"):
+        return "1", "ppm", 1e6, -1e6
+    if c in ("sf_nonlinearity", "sf_asymmetry", "sf_nonlinearity_floor"):
+        return "1", "ppm", 1e6, 0.0
+    if c.startswith("misalignment_"):
+        return "rad", "arcsec", RAD_TO_ARCSEC, 0.0
+    if c.startswith("g_sensitivity_"):
+        return "rad/s/(m/s^2)", "deg/h/g", RADPS_TO_DEGPH * G0, 0.0
+    if c == "k2" or c.startswith("cross_coupling_"):
+        return "1/(m/s^2)", "ug/g^2", G0 * 1e6, 0.0
+    if c in ("bias_repeatability",):
+        return units_of(sensor, "bias")
+    if c in ("scale_factor_repeatability",):
+        return "1", "ppm", 1e6, 0.0
+    raise KeyError(f"no unit known for coefficient {coefficient!r}")
+
+
+def coefficient_row(
+    *,
+    device_id: str,
+    run_id: str,
+    sensor: str,
+    axis: str,
+    coefficient: str,
+    value: float,
+    stderr: float,
+    observable: bool,
+    n_plateaus: int,
+    n_samples: int,
+    method: str,
+    k95: float = 1.959963984540054,
+    dof: int | float = np.nan,
+    cov_policy: str = "",
+    note: str = "",
+) -> dict:
+    """One COEFFICIENT TABLE row (docs/design.md), with lab-unit conversion and a 95 % interval."""
+    unit, unit_lab, fac, off = units_of(sensor, coefficient)
+    value = float(value) if observable else float("nan")
+    stderr = float(stderr) if observable else float("nan")
+    return {
+        "device_id": device_id,
+        "run_id": run_id,
+        "sensor": sensor,
+        "axis": axis,
+        "coefficient": coefficient,
+        "value": value,
+        "stderr": stderr,
+        "unit": unit,
+        "value_lab": fac * value + off,
+        "stderr_lab": abs(fac) * stderr,
+        "unit_lab": unit_lab,
+        "observable": bool(observable),
+        "n_plateaus": int(n_plateaus),
+        "n_samples": int(n_samples),
+        "method": method,
+        "ci95_low": value - k95 * stderr,
+        "ci95_high": value + k95 * stderr,
+        "dof": dof,
+        "cov_policy": cov_policy,
+        "note": note,
+    }
+
+
+def coefficient_frame(rows: list[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(rows, columns=COEFFICIENT_COLUMNS + EXTRA_COEFFICIENT_COLUMNS)
+    return df.astype({"observable": bool})
+
+
+RESIDUAL_COLUMNS = [
+    "device_id",
+    "run_id",
+    "step_index",
+    "kind",
+    "sensor",
+    "axis",
+    "input_name",
+    "input_value",
+    "input_unit",
+    "observed",
+    "fitted",
+    "residual",
+    "sigma",
+    "std_residual",
+    "excluded",
+    "reason",
+    "unit",
+]
+
+
+def residual_frame(fit, meta: pd.DataFrame, *, sensor: str, axis: str, input_name: str, input_value, input_unit: str,
+                   observed, unit: str) -> pd.DataFrame:
+    """Residual table (one row per plateau of this sensor axis) from a :class:`fit_core.LinearFit`."""
+    n = len(meta)
+    sig = fit.sigma if fit.sigma is not None else np.full(n, np.nan)
+    return pd.DataFrame(
+        {
+            "device_id": meta["device_id"].to_numpy() if "device_id" in meta else "",
+            "run_id": meta["run_id"].to_numpy() if "run_id" in meta else "",
+            "step_index": meta["step_index"].to_numpy() if "step_index" in meta else np.arange(n),
+            "kind": meta["kind"].to_numpy() if "kind" in meta else "",
+            "sensor": sensor,
+            "axis": axis,
+            "input_name": input_name,
+            "input_value": np.asarray(input_value, float),
+            "input_unit": input_unit,
+            "observed": np.asarray(observed, float),
+            "fitted": fit.fitted,
+            "residual": fit.residual,
+            "sigma": sig,
+            "std_residual": fit.std_residual,
+            "excluded": ~fit.used,
+            "reason": list(fit.exclusion_reason),
+            "unit": unit,
+        },
+        columns=RESIDUAL_COLUMNS,
+    )
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def plot_rate_residuals_png(residuals: pd.DataFrame, title: str = "Gyro rate fit residuals") -> bytes:
+    """Residual vs reference rate (deg/s) per gyro axis, residual in deg/h; excluded plateaus as red crosses."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    df = residuals[residuals["sensor"] == "gyro"]
+    axes_present = [a for a in ("x", "y", "z") if (df["axis"] == a).any()]
+    fig, axs = plt.subplots(len(axes_present) or 1, 1, figsize=(7.5, 2.6 * max(len(axes_present), 1)), squeeze=False)
+    for ax, a in zip(axs[:, 0], axes_present):
+        d = df[df["axis"] == a]
+        x = d["input_value"].to_numpy() * RADPS_TO_DEGPS
+        r = d["residual"].to_numpy() * RADPS_TO_DEGPH
+        s = d["sigma"].to_numpy() * RADPS_TO_DEGPH
+        ex = d["excluded"].to_numpy(bool)
+        ax.axhline(0, color="0.6", lw=0.8)
+        ax.errorbar(x[~ex], r[~ex], yerr=np.where(np.isfinite(s[~ex]), s[~ex], 0), fmt="o", ms=4, label="used")
+        if ex.any():
+            ax.plot(x[ex], r[ex], "x", color="red", ms=8, mew=2, label="excluded")
+        ax.set_ylabel(f"gyro {a} residual [deg/h]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+    axs[-1, 0].set_xlabel("reference rate on the axis, earth rate included [deg/s]")
+    axs[0, 0].set_title(title)
+    return _png(fig)
+
+
+def plot_multiposition_residuals_png(residuals: pd.DataFrame, title: str = "Multi-position fit residuals") -> bytes:
+    """Residual per position (plan order) and axis: accelerometer in ug, gyro in deg/h; excluded in red."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    sensors = [s for s in ("accel", "gyro") if (residuals["sensor"] == s).any()]
+    fig, axs = plt.subplots(len(sensors) or 1, 1, figsize=(8.5, 3.0 * max(len(sensors), 1)), squeeze=False)
+    for ax, s in zip(axs[:, 0], sensors):
+        d = residuals[residuals["sensor"] == s]
+        fac, unit = (1e6 / G0, "ug") if s == "accel" else (RADPS_TO_DEGPH, "deg/h")
+        for k, a in enumerate(("x", "y", "z")):
+            da = d[d["axis"] == a]
+            if da.empty:
+                continue
+            pos = np.arange(len(da)) + (k - 1) * 0.18
+            r = da["residual"].to_numpy() * fac
+            sg = da["sigma"].to_numpy() * fac
+            ex = da["excluded"].to_numpy(bool)
+            ax.errorbar(pos[~ex], r[~ex], yerr=np.where(np.isfinite(sg[~ex]), sg[~ex], 0), fmt="o", ms=3.5, label=f"{a}")
+            if ex.any():
+                ax.plot(pos[ex], r[ex], "x", color="red", ms=8, mew=2)
+        n = int(d.groupby("axis").size().max()) if len(d) else 0
+        for b in range(8, n, 8):
+            ax.axvline(b - 0.5, color="0.8", lw=0.8)
+        ax.axhline(0, color="0.6", lw=0.8)
+        ax.set_ylabel(f"{s} residual [{unit}]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, ncol=3)
+    axs[-1, 0].set_xlabel("position (plan order; groups of 8 for the 24-position plan)")
+    axs[0, 0].set_title(title)
+    return _png(fig)

@@ -1,0 +1,571 @@
+"""Gyro rate fit from a PLATEAU TABLE: scale factor, bias, misalignment, nonlinearity, asymmetry.
+
+Model (docs/design.md, seed 000 eq. 1): y_i = K_i (omega_i + sum_j E_ij omega_j) + b_i [+ G_i . f] + n, per
+gyro axis i, with ``omega`` the reference input ``omega_ref_{x,y,z}_radps`` (table rate plus the modelled earth
+rate). It is linear in a_ii = K_i, a_ij = K_i E_ij and b_i, and is fitted per axis by weighted least squares
+over the plateaus (seed 003 eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
+method. Misalignment is observable only when the plateaus excite the other axes (rate tests about all three
+body axes, seed 000 eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.fit_core` for the
+identifiability rule, the exclusion tests and the covariance policy.
+
+Also: scale-factor nonlinearity (seed 003: max deviation from the fitted line over the full-scale output),
+asymmetry (K+ vs K-, IEEE 952 / seed 003) with uncertainties, automatic exclusion of saturated and wild
+plateaus with reasons, and seed 000's +/- full-revolution difference method (eq. 9-13) as a cross-check.
+
+g-sensitivity enters as centred nuisance columns: the bias shifts between the rate tests' orientations (G f)
+are absorbed even when G is not separable from the bias, and the bias is then reported at the schedule's mean
+specific force (b + G f_bar, stated in the coefficient's note). With plateau times, the bias-instability
+noise shared between plateaus is modelled by REML/GLS (``correlated_noise``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from assets_lib.earth import EARTH_RATE_RADPS
+from assets_lib.fit_core import (
+    DEFAULT_ALPHA,
+    DEFAULT_REL_TOL,
+    LinearFit,
+    detect_saturation,
+    fit_linear,
+    ratio_with_stderr,
+)
+from assets_lib.fit_report import (
+    RADPS_TO_DEGPS,
+    coefficient_frame,
+    coefficient_row,
+    plot_rate_residuals_png,
+    residual_frame,
+)
+
+AXES = ("x", "y", "z")
+METHOD = "wls_rate_fit"
+METHOD_DIFF = "seed000_full_revolution_difference"
+_NC_RNG_SEED = 952  # fixed seed: the nonlinearity noise floor is a deterministic function of the design
+
+
+def _omega(p: pd.DataFrame) -> np.ndarray:
+    return p[[f"omega_ref_{a}_radps" for a in AXES]].to_numpy(float)
+
+
+def _force(p: pd.DataFrame) -> np.ndarray:
+    cols = [f"f_ref_{a}_mps2" for a in AXES]
+    if all(c in p for c in cols):
+        return p[cols].to_numpy(float)
+    return np.full((len(p), 3), np.nan)
+
+
+def _sem(p: pd.DataFrame, col: str) -> np.ndarray | None:
+    return p[col].to_numpy(float) if col in p else None
+
+
+def _n_samples(p: pd.DataFrame, mask: np.ndarray) -> int:
+    return int(p.loc[mask, "n_samples"].sum()) if "n_samples" in p else 0
+
+
+def select_rows(plateaus: pd.DataFrame, kinds=("rate", "static"), use_flagged: bool = False):
+    """Rows of the given kinds, and {row: reason} for rows the segmentation flagged (excluded unless asked)."""
+    p = plateaus[plateaus["kind"].isin(kinds)].reset_index(drop=True)
+    pre: dict[int, str] = {}
+    if not use_flagged and "flagged" in p:
+        fl = p["flagged"].fillna(False).to_numpy(bool)
+        why = p["flag_reason"].fillna("").astype(str).to_numpy() if "flag_reason" in p else np.full(len(p), "")
+        for i in np.flatnonzero(fl):
+            pre[int(i)] = f"flagged by segmentation: {why[i] or 'no reason given'}"
+    return p, pre
+
+
+def on_axis_rows(omega: np.ndarray, i: int, kind: np.ndarray | None = None) -> np.ndarray:
+    """Plateaus of axis i's rate sweep: rotation mostly about body axis i, or no table rotation at all."""
+    norm = np.linalg.norm(omega, axis=1)
+    about_i = np.abs(omega[:, i]) >= 0.9 * norm
+    still = norm <= 3.0 * EARTH_RATE_RADPS
+    return (about_i & ~still) | still
+
+
+def compression_note(x: np.ndarray, sweep: np.ndarray, saturated: dict[int, str], sign_gain: float = 1.0):
+    """Outlier-reason context: an excluded plateau at the end of the sweep whose output falls short of the line."""
+
+    def note(row: int, resid: float, used: np.ndarray) -> str:
+        if not sweep[row] or x[row] == 0:
+            return ""
+        same = sweep & used & (np.sign(x) == np.sign(x[row]))
+        at_end = not np.any(np.abs(x[same]) > abs(x[row]))
+        compressive = resid * np.sign(sign_gain * x[row]) < 0
+        if not (at_end and compressive):
+            return ""
+        sat_beyond = [k for k in saturated if np.sign(x[k]) == np.sign(x[row]) and abs(x[k]) > abs(x[row])]
+        return "at the end of the input range and compressive (output short of the line)" + (
+            ": next to saturated plateau(s), likely onset of saturation" if sat_beyond else ": possible saturation onset"
+        )
+
+    return note
+
+
+def sweep_screen_columns(x: np.ndarray, rows: np.ndarray, min_magnitudes: int = 5) -> np.ndarray | None:
+    """Nuisance regressors |w|, w^2, w^3 on the sweep rows, for the outlier screen only (effects.md signatures of
+    asymmetry and nonlinearity); None when the sweep has fewer than ``min_magnitudes`` distinct |rates|."""
+    mags = np.unique(np.round(np.abs(x[rows]), 12))
+    if np.sum(mags > 0) < min_magnitudes:
+        return None
+    xr = np.where(rows, x, 0.0)
+    return np.column_stack([np.abs(xr), xr**2, xr**3])
+
+
+@dataclass(frozen=True, eq=False)
+class SweepStats:
+    """Seed 003 eq. 4-8: nonlinearity and asymmetry of one axis' rate sweep (ratios; ppm at the report edge)."""
+
+    nonlinearity: float
+    nonlinearity_stderr: float
+    nonlinearity_floor: float  # 95 % quantile of the statistic under pure noise (detection limit)
+    nonlinearity_at_input: float  # input of the worst plateau
+    full_scale_output: float
+    n_sweep: int
+    k_pos: float
+    k_pos_stderr: float
+    k_neg: float
+    k_neg_stderr: float
+    asymmetry: float  # (K+ - K-) / mean(K+, K-)
+    asymmetry_stderr: float
+    asymmetry_fit: LinearFit | None
+
+
+def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.ndarray, gain: float):
+    """Seed 003 eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
+
+    Standard error: the standard deviation of the worst residual (plateau sems, or the residual scatter when
+    no sems are given). Noise floor: the 95 % quantile of the same statistic when the only deviation is the
+    measurement noise (Monte Carlo over the residual covariance (I - H) sigma^2 of this design, fixed seed).
+    """
+    m = sweep & fit.used
+    idx = np.flatnonzero(m)
+    nan = (np.nan, np.nan, np.nan, np.nan, np.nan, 0)
+    if len(idx) < 2 or not np.isfinite(gain):
+        return nan
+    fs = abs(gain) * np.max(np.abs(x[idx]))
+    if fs <= 0:
+        return nan
+    r = fit.residual[idx]
+    j = int(np.argmax(np.abs(r)))
+    used = np.flatnonzero(fit.used)
+    sig = fit.sigma[used] if fit.sigma is not None else np.ones(len(used))
+    var_unit = fit.scale if fit.cov_policy in ("residual",) else 1.0
+    if not np.isfinite(var_unit):
+        return (float(np.abs(r[j]) / fs), np.nan, np.nan, float(x[idx[j]]), fs, len(idx))
+    Aw = A[np.ix_(used, np.flatnonzero(fit.observable))] / sig[:, None]
+    Q, _ = np.linalg.qr(Aw)
+    pos = np.searchsorted(used, idx)
+    h = np.sum(Q[pos] ** 2, axis=1)
+    sd = sig[pos] * np.sqrt(var_unit * np.maximum(1 - h, 0))
+    rng = np.random.default_rng(_NC_RNG_SEED)
+    z = rng.standard_normal((len(used), 2000))
+    e = z - Q @ (Q.T @ z)
+    e_sweep = e[pos] * sig[pos, None] * np.sqrt(var_unit)
+    floor = float(np.quantile(np.max(np.abs(e_sweep), axis=0), 0.95) / fs)
+    return (float(abs(r[j]) / fs), float(sd[j] / fs), floor, float(x[idx[j]]), float(fs), len(idx))
+
+
+def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, str], scales, optional, rel_tol,
+                    nuisance=None):
+    """Asymmetry by a hinge term: y = ... + Kbar w + (dK/2)|w| (shared bias); K+- = Kbar +- dK/2.
+
+    One fit with a common bias rather than two separate line fits: the bias is anchored by both signs and the
+    zero-rate plateaus (IEEE 952: asymmetry = difference of the positive- and negative-input scale factors
+    relative to their mean). Note (effects.md): an even nonlinearity (w^2) aliases into |w|.
+    """
+    Ah = np.column_stack([A[:, : main_col + 1], np.abs(x_main), A[:, main_col + 1 :]])
+    nh = tuple(names[: main_col + 1]) + ("sf_asymmetry_term",) + tuple(names[main_col + 1 :])
+    sc = np.r_[scales[: main_col + 1], scales[main_col], scales[main_col + 1 :]]
+    op = np.r_[optional[: main_col + 1], False, optional[main_col + 1 :]]
+    nu = None if nuisance is None else np.r_[nuisance[: main_col + 1], False, nuisance[main_col + 1 :]]
+    f = fit_linear(Ah, y, nh, sigma=sigma, scales=sc, optional=op, rel_tol=rel_tol, pre_excluded=pre, outlier_test=False,
+                   nuisance=nu)
+    k, d = main_col, main_col + 1
+    if not (f.observable[k] and f.observable[d]):
+        return (np.nan,) * 6 + (f,)
+    a, hd = f.value[k], f.value[d]
+    C = f.cov
+    kp, kn = a + hd, a - hd
+    sp = np.sqrt(C[k, k] + C[d, d] + 2 * C[k, d])
+    sn = np.sqrt(C[k, k] + C[d, d] - 2 * C[k, d])
+    asym = 2 * hd / a
+    g = np.array([-2 * hd / a**2, 2 / a])
+    Cs = C[np.ix_([k, d], [k, d])]
+    sa = float(np.sqrt(g @ Cs @ g))
+    return float(kp), float(sp), float(kn), float(sn), float(asym), sa, f
+
+
+@dataclass(frozen=True, eq=False)
+class GyroAxisRateFit:
+    """One gyro axis: the linear fit and the derived coefficients (SI, ratios)."""
+
+    axis: str
+    fit: LinearFit
+    design: np.ndarray
+    scale_factor: float
+    scale_factor_stderr: float
+    bias_radps: float
+    bias_stderr_radps: float
+    misalignment_rad: dict  # {'y': (value, stderr, observable)} for E[i, j]
+    g_sensitivity: dict  # {'x': (value, stderr, observable)} rad/s per m/s^2
+    sweep: SweepStats
+    saturated: dict  # {row: reason}
+    n_plateaus: int
+    n_samples: int
+    bias_reference_force_mps2: np.ndarray | None = None  # set when G is not separable: bias = b + G f_bar
+
+    def linear_row(self) -> tuple[np.ndarray, np.ndarray]:
+        """[a_ix, a_iy, a_iz] = K_i (e_i + E_i) and its covariance; unobservable entries at nominal with 0 var."""
+        i = AXES.index(self.axis)
+        names = self.fit.names
+        v = np.zeros(3)
+        v[i] = 1.0
+        C = np.zeros((3, 3))
+        cols = []
+        for j, a in enumerate(AXES):
+            nm = "scale_factor" if j == i else f"misalignment_{self.axis}{a}"
+            k = names.index(nm)
+            cols.append(k if self.fit.observable[k] else None)
+            if self.fit.observable[k]:
+                v[j] = self.fit.value[k]
+        for j, kj in enumerate(cols):
+            for m, km in enumerate(cols):
+                if kj is not None and km is not None:
+                    C[j, m] = self.fit.cov[kj, km]
+        return v, C
+
+
+@dataclass(frozen=True, eq=False)
+class DifferenceCheck:
+    """Seed 000 eq. 9-13: M = diag(K)(I + E) from +/- plateau pairs at equal |rate| (bias and vertical earth
+    rate cancel in the difference; horizontal earth rate averages out over whole revolutions)."""
+
+    fits: tuple  # per output axis LinearFit of dy_i = sum_j M_ij dw_j
+    pairs: pd.DataFrame
+    scale_factor: np.ndarray
+    scale_factor_stderr: np.ndarray
+    misalignment: np.ndarray  # E (3, 3), NaN where not observable
+    misalignment_stderr: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GyroRateFit:
+    """Gyro rate-fit result for one device and run (three axes), with tidy table and plot helpers."""
+
+    device_id: str
+    run_id: str
+    axes: tuple[GyroAxisRateFit, ...]
+    plateaus: pd.DataFrame
+    difference: DifferenceCheck | None
+
+    def axis(self, a: str) -> GyroAxisRateFit:
+        return self.axes[AXES.index(a)]
+
+    @property
+    def scale_factor(self) -> np.ndarray:
+        return np.array([ax.scale_factor for ax in self.axes])
+
+    @property
+    def bias_radps(self) -> np.ndarray:
+        return np.array([ax.bias_radps for ax in self.axes])
+
+    @property
+    def misalignment_rad(self) -> np.ndarray:
+        E = np.zeros((3, 3))
+        for i, ax in enumerate(self.axes):
+            for j, a in enumerate(AXES):
+                if j != i:
+                    E[i, j] = ax.misalignment_rad[a][0]
+        return E
+
+    def coefficient_table(self) -> pd.DataFrame:
+        rows = []
+        for ax in self.axes:
+            f = ax.fit
+            common = dict(device_id=self.device_id, run_id=self.run_id, sensor="gyro", axis=ax.axis,
+                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD, k95=f.k95, dof=f.dof,
+                          cov_policy=f.cov_policy)
+            k = f.names.index("scale_factor")
+            rows.append(coefficient_row(coefficient="scale_factor", value=ax.scale_factor, stderr=ax.scale_factor_stderr,
+                                        observable=bool(f.observable[k]), note=f.unobservable_reason[k], **common))
+            k = f.names.index("bias")
+            bnote = f.unobservable_reason[k]
+            if ax.bias_reference_force_mps2 is not None:
+                fb = ", ".join(f"{v:.3f}" for v in ax.bias_reference_force_mps2)
+                bnote = (f"bias at the schedule's mean specific force f_bar = [{fb}] m/s^2: b + G f_bar (g-sensitivity "
+                         "not separable from the bias in this schedule; see the static multi-position fit)")
+            rows.append(coefficient_row(coefficient="bias", value=ax.bias_radps, stderr=ax.bias_stderr_radps,
+                                        observable=bool(f.observable[k]), note=bnote, **common))
+            for a, (v, s, ob) in ax.misalignment_rad.items():
+                k = f.names.index(f"misalignment_{ax.axis}{a}")
+                note = f.unobservable_reason[k] or ("" if ob else "needs the scale factor of this axis, which the "
+                                                                  "schedule does not observe")
+                rows.append(coefficient_row(coefficient=f"misalignment_{ax.axis}{a}", value=v, stderr=s, observable=ob,
+                                            note=note, **common))
+            for a, (v, s, ob) in ax.g_sensitivity.items():
+                k = f.names.index(f"g_sensitivity_{a}")
+                rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", value=v, stderr=s, observable=ob,
+                                            note=f.unobservable_reason[k], **common))
+            sw = ax.sweep
+            ok = np.isfinite(sw.nonlinearity)
+            rows.append(coefficient_row(
+                coefficient="sf_nonlinearity", value=sw.nonlinearity, stderr=sw.nonlinearity_stderr, observable=bool(ok),
+                note=(f"max |residual| / full-scale output {sw.full_scale_output:.6g} rad/s over {sw.n_sweep} plateaus, "
+                      f"worst at {sw.nonlinearity_at_input * RADPS_TO_DEGPS:+.6g} deg/s; noise floor (95 %) "
+                      f"{sw.nonlinearity_floor * 1e6:.3g} ppm") if ok else "fewer than two sweep plateaus",
+                **{**common, "k95": 1.959963984540054}))
+            ok = np.isfinite(sw.asymmetry)
+            for name, v, s in (("scale_factor_pos", sw.k_pos, sw.k_pos_stderr),
+                               ("scale_factor_neg", sw.k_neg, sw.k_neg_stderr),
+                               ("sf_asymmetry", sw.asymmetry, sw.asymmetry_stderr)):
+                rows.append(coefficient_row(coefficient=name, value=v, stderr=s, observable=bool(ok),
+                                            note="" if ok else "needs plateaus of both signs on this axis", **common))
+        return coefficient_frame(rows)
+
+    def residual_table(self) -> pd.DataFrame:
+        om = _omega(self.plateaus)
+        parts = []
+        for i, ax in enumerate(self.axes):
+            col = f"gyro_{ax.axis}_radps_mean"
+            parts.append(residual_frame(ax.fit, self.plateaus, sensor="gyro", axis=ax.axis,
+                                        input_name=f"omega_ref_{ax.axis}_radps", input_value=om[:, i],
+                                        input_unit="rad/s", observed=self.plateaus[col].to_numpy(float), unit="rad/s"))
+        return pd.concat(parts, ignore_index=True)
+
+    def exclusions(self) -> pd.DataFrame:
+        r = self.residual_table()
+        return r[r["excluded"]][["device_id", "run_id", "step_index", "sensor", "axis", "input_value", "reason"]]
+
+    def cross_check_table(self) -> pd.DataFrame:
+        """Main fit vs seed 000 difference method; z uses sqrt(se_diff^2 - se_fit^2) (the difference estimator
+        is a less efficient linear estimator on a subset of the same data, Hausman 1978)."""
+        if self.difference is None:
+            return pd.DataFrame()
+        d = self.difference
+        rows = []
+        for i, ax in enumerate(self.axes):
+            items = [("scale_factor", ax.scale_factor, ax.scale_factor_stderr, d.scale_factor[i], d.scale_factor_stderr[i])]
+            for j, a in enumerate(AXES):
+                if j != i:
+                    v, s, _ = ax.misalignment_rad[a]
+                    items.append((f"misalignment_{ax.axis}{a}", v, s, d.misalignment[i, j], d.misalignment_stderr[i, j]))
+            for name, vf, sf, vd, sd in items:
+                dv = sd**2 - sf**2
+                rows.append(dict(axis=ax.axis, coefficient=name, value_fit=vf, stderr_fit=sf, value_difference=vd,
+                                 stderr_difference=sd, delta=vd - vf,
+                                 z=(vd - vf) / np.sqrt(dv) if dv > 0.01 * sd**2 else np.nan))
+        return pd.DataFrame(rows)
+
+    def plot_png(self) -> bytes:
+        return plot_rate_residuals_png(self.residual_table(), title=f"Gyro rate fit residuals {self.device_id} {self.run_id}")
+
+
+def _times(p: pd.DataFrame):
+    """(mid-time, length) of every plateau for the correlated-noise GLS, or None without plateau times."""
+    if "t_start_s" not in p or "t_end_s" not in p:
+        return None
+    a, b = p["t_start_s"].to_numpy(float), p["t_end_s"].to_numpy(float)
+    return 0.5 * (a + b), b - a
+
+
+def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alpha, rel_tol,
+              correlated_noise=True) -> GyroAxisRateFit:
+    a = AXES[i]
+    om = _omega(p)
+    fr = _force(p)
+    y = p[f"gyro_{a}_radps_mean"].to_numpy(float)
+    sig = _sem(p, f"gyro_{a}_radps_sem") if sigma_ok else None
+    others = [j for j in range(3) if j != i]
+    cols = [np.ones(len(p)), om[:, i]] + [om[:, j] for j in others]
+    names = ["bias", "scale_factor"] + [f"misalignment_{a}{AXES[j]}" for j in others]
+    w_fs = float(np.nanmax(np.abs(om))) if len(p) else 1.0
+    scales = [1.0, w_fs, w_fs, w_fs]
+    optional = [False, False, False, False]
+    use_g = g_sens is True or (g_sens == "auto" and np.all(np.isfinite(fr)))
+    sweep = on_axis_rows(om, i)
+    pre_i = dict(pre)
+    sat: dict[int, str] = {}
+    if saturation_test:
+        rows = np.flatnonzero(sweep & ~np.isin(np.arange(len(p)), list(pre)))
+        ss = sig[rows] * np.sqrt(p["n_samples"].to_numpy(float)[rows]) if (sig is not None and "n_samples" in p) else None
+        s = detect_saturation(om[rows, i], y[rows], None if sig is None else sig[rows], x_unit="deg/s",
+                              x_factor=RADPS_TO_DEGPS, sample_sigma=ss)
+        sat = {int(rows[k]): v for k, v in s.items()}
+        pre_i.update(sat)
+    nuisance = [False] * 4
+    f_bar = None
+    if use_g:
+        # g-sensitivity as centred nuisance columns: they absorb the bias shifts between orientations (G f) even
+        # when G itself is not separable from the bias; the intercept is then the bias at the mean force f_bar
+        keep = ~np.isin(np.arange(len(p)), list(pre_i))
+        f_bar = fr[keep].mean(axis=0) if keep.any() else np.zeros(3)
+        g_fs = float(np.nanmax(np.linalg.norm(fr, axis=1))) or 1.0
+        for j in range(3):
+            cols.append(fr[:, j] - f_bar[j])
+            names.append(f"g_sensitivity_{AXES[j]}")
+            scales.append(g_fs)
+            optional.append(True)
+            nuisance.append(True)
+    A = np.column_stack(cols)
+    scales = np.asarray(scales)
+    optional = np.asarray(optional)
+    nuisance = np.asarray(nuisance)
+    note = compression_note(om[:, i], sweep, sat)
+    rate_rows = sweep & (p["kind"].to_numpy() == "rate") & (np.linalg.norm(om, axis=1) > 3.0 * EARTH_RATE_RADPS)
+    fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=optional, rel_tol=rel_tol, pre_excluded=pre_i,
+                     outlier_test=outlier_test, alpha=alpha, outlier_note=note,
+                     screen_columns=sweep_screen_columns(om[:, i], rate_rows), nuisance=nuisance,
+                     times=_times(p) if correlated_noise else None)
+    ks = names.index("scale_factor")
+    K, sK = fit.get("scale_factor")
+    b, sb = fit.get("bias")
+    mis = {}
+    for j in others:
+        nm = f"misalignment_{a}{AXES[j]}"
+        k = names.index(nm)
+        if fit.observable[k] and fit.observable[ks]:
+            v, s = ratio_with_stderr(fit.value[k], fit.value[ks], fit.cov[k, k], fit.cov[ks, ks], fit.cov[k, ks])
+            mis[AXES[j]] = (v, s, True)
+        else:
+            mis[AXES[j]] = (np.nan, np.nan, False)
+    gs = {}
+    bias_force = None
+    if use_g:
+        kg = [names.index(f"g_sensitivity_{AXES[j]}") for j in range(3)]
+        full = bool(np.all(fit.observable[kg]))
+        for j, k in enumerate(kg):
+            gs[AXES[j]] = (float(fit.value[k]), float(np.sqrt(fit.cov[k, k])), True) if full else (np.nan, np.nan, False)
+        kb = names.index("bias")
+        if full:
+            # b = b_bar - G f_bar
+            gvec = np.zeros(len(names))
+            gvec[kb] = 1.0
+            gvec[kg] = -f_bar
+            C = np.nan_to_num(fit.cov)
+            b = float(fit.value[kb] - fit.value[kg] @ f_bar)
+            sb = float(np.sqrt(gvec @ C @ gvec))
+        else:
+            bias_force = f_bar
+    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, om[:, i], rate_rows, K)
+    pre_asym = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
+    kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, om[:, i], ks, pre_asym, scales, optional, rel_tol,
+                                                      nuisance)
+    if not np.isfinite(asym):
+        fa = None
+    st = SweepStats(nl, nls, floor, at, fs, nsw, kp, sp, kn, sn, asym, sasym, fa)
+    return GyroAxisRateFit(
+        axis=a, fit=fit, design=A, scale_factor=K, scale_factor_stderr=sK, bias_radps=b, bias_stderr_radps=sb,
+        misalignment_rad=mis, g_sensitivity=gs, sweep=st, saturated=sat, n_plateaus=fit.n_used,
+        n_samples=_n_samples(p, fit.used), bias_reference_force_mps2=bias_force,
+    )
+
+
+def difference_method(p: pd.DataFrame, excluded: list[np.ndarray] | None = None, *, rel_tol=DEFAULT_REL_TOL,
+                      sigma_ok: bool = True) -> DifferenceCheck | None:
+    """Seed 000 eq. 9-13 from plateau means: pair +w and -w plateaus about the same axis at the same |rate|.
+
+    For each pair, dy = y(+) - y(-) = M (w(+) - w(-)) (bias, g-sensitivity and the vertical earth rate cancel);
+    per output axis i a no-intercept least squares dy_i = sum_j M_ij dw_j over the pairs gives K_i = M_ii and
+    E_ij = M_ij / M_ii (eq. 12-13). ``excluded[i]`` marks plateaus excluded for output axis i in the main fit.
+    """
+    om = _omega(p)
+    kind = p["kind"].to_numpy()
+    norm = np.linalg.norm(om, axis=1)
+    rate = (kind == "rate") & (norm > 3.0 * EARTH_RATE_RADPS)
+    dom = np.argmax(np.abs(om), axis=1)
+    cmd = np.abs(p["commanded_rate_radps"].to_numpy(float)) if "commanded_rate_radps" in p else norm
+    pairs = []
+    for j in range(3):
+        rows = np.flatnonzero(rate & (dom == j))
+        mags = cmd[rows]
+        used_mag = set()
+        for r in rows:
+            m = mags[list(rows).index(r)]
+            key = round(float(m), 9)
+            if key in used_mag:
+                continue
+            same = rows[np.isclose(mags, m, rtol=1e-6, atol=1e-12)]
+            pos = same[om[same, j] > 0]
+            neg = same[om[same, j] < 0]
+            used_mag.add(key)
+            if len(pos) and len(neg):
+                pairs.append((j, m, pos, neg))
+    if not pairs:
+        return None
+    Y = np.array([[p[f"gyro_{a}_radps_mean"].to_numpy(float)] for a in AXES])[:, 0, :]
+    S = np.array([p[f"gyro_{a}_radps_sem"].to_numpy(float) if f"gyro_{a}_radps_sem" in p else np.full(len(p), np.nan)
+                  for a in AXES])
+    dW = np.array([om[pos].mean(0) - om[neg].mean(0) for _, _, pos, neg in pairs])
+    fits = []
+    rec = []
+    for i in range(3):
+        dy = np.array([Y[i, pos].mean() - Y[i, neg].mean() for _, _, pos, neg in pairs])
+        ds = np.array([np.sqrt(np.mean(S[i, pos] ** 2) / len(pos) + np.mean(S[i, neg] ** 2) / len(neg))
+                       for _, _, pos, neg in pairs])
+        pre = {}
+        if excluded is not None:
+            for k, (_, _, pos, neg) in enumerate(pairs):
+                if excluded[i][pos].any() or excluded[i][neg].any():
+                    pre[k] = "a plateau of the pair is excluded in the main fit"
+        use_sig = sigma_ok and np.all(np.isfinite(ds) & (ds > 0))
+        w_fs = float(np.max(np.abs(dW))) or 1.0
+        f = fit_linear(dW, dy, [f"M_{AXES[i]}{a}" for a in AXES], sigma=ds if use_sig else None,
+                       scales=np.full(3, w_fs), rel_tol=rel_tol, pre_excluded=pre, outlier_test=False)
+        fits.append(f)
+        for k, (j, m, pos, neg) in enumerate(pairs):
+            rec.append(dict(output_axis=AXES[i], rate_axis=AXES[j], rate_radps=m, n_pos=len(pos), n_neg=len(neg),
+                            dy=dy[k], dy_sigma=ds[k], used=bool(f.used[k])))
+    K = np.full(3, np.nan)
+    sK = np.full(3, np.nan)
+    E = np.full((3, 3), np.nan)
+    sE = np.full((3, 3), np.nan)
+    for i, f in enumerate(fits):
+        if f.observable[i]:
+            K[i], sK[i] = f.value[i], np.sqrt(f.cov[i, i])
+            for j in range(3):
+                if j != i and f.observable[j]:
+                    E[i, j], sE[i, j] = ratio_with_stderr(f.value[j], f.value[i], f.cov[j, j], f.cov[i, i], f.cov[j, i])
+        for j in range(3):
+            if j == i:
+                E[i, j], sE[i, j] = 0.0, 0.0
+    return DifferenceCheck(tuple(fits), pd.DataFrame(rec), K, sK, E, sE)
+
+
+def fit_gyro_rate(
+    plateaus: pd.DataFrame,
+    *,
+    include_static: bool = True,
+    g_sensitivity: bool | str = "auto",
+    outlier_test: bool = True,
+    saturation_test: bool = True,
+    alpha: float = DEFAULT_ALPHA,
+    rel_tol: float = DEFAULT_REL_TOL,
+    use_flagged: bool = False,
+    cross_check: bool = True,
+    correlated_noise: bool = True,
+) -> GyroRateFit:
+    """Seed 003 eq. 3 / seed 000 eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
+
+    ``plateaus``: PLATEAU TABLE rows (kind 'rate', plus 'static' when ``include_static``) of one device and
+    run. Flagged rows are excluded (reason kept) unless ``use_flagged``. ``g_sensitivity='auto'`` adds
+    g-sensitivity columns, kept only where the schedule separates them from the bias.
+    """
+    kinds = ("rate", "static") if include_static else ("rate",)
+    p, pre = select_rows(plateaus, kinds, use_flagged)
+    if not (p["kind"] == "rate").any():
+        raise ValueError("fit_gyro_rate needs plateaus of kind 'rate'")
+    dev = str(p["device_id"].iloc[0]) if "device_id" in p else ""
+    run = str(p["run_id"].iloc[0]) if "run_id" in p else ""
+    sigma_ok = all(f"gyro_{a}_radps_sem" in p for a in AXES)
+    axes = tuple(
+        _fit_axis(p, pre, i, sigma_ok=sigma_ok, g_sens=g_sensitivity, outlier_test=outlier_test,
+                  saturation_test=saturation_test, alpha=alpha, rel_tol=rel_tol, correlated_noise=correlated_noise)
+        for i in range(3)
+    )
+    diff = difference_method(p, [~ax.fit.used for ax in axes], rel_tol=rel_tol, sigma_ok=sigma_ok) if cross_check else None
+    return GyroRateFit(dev, run, axes, p, diff)

@@ -1,0 +1,103 @@
+"""Turn-on to turn-on repeatability of bias and scale factor over a device's power-cycled runs.
+
+Bias repeatability (seed 000 eq. 23; GJB 2426A B_r): the sample standard deviation of the per-run biases,
+B_r = sqrt( sum (B_i - mean B)^2 / (Q - 1) ). Scale-factor repeatability (seed 003 eq. 9; GJB K_r):
+K_r = sqrt( sum (K_i - mean K)^2 / (Q - 1) ) / mean K. Both with the number of runs Q and a chi-square
+confidence interval on the standard deviation, assuming normally distributed run values:
+sigma in [s sqrt(nu / chi2_{1-a/2}(nu)), s sqrt(nu / chi2_{a/2}(nu))], nu = Q - 1.
+
+The sample standard deviation includes each run's own estimation noise. When the per-run standard errors are
+known, the noise-corrected value sqrt(max(0, s^2 - mean(se^2))) is also reported (method of moments): it is
+what the device itself repeats to, whereas s is the seed's (and the standards') definition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from assets_lib.fit_report import units_of
+
+
+@dataclass(frozen=True)
+class Repeatability:
+    """Seed 000 eq. 23: std of the per-run values (relative to their mean when ``relative``)."""
+
+    n_runs: int
+    mean: float
+    std: float
+    std_stderr: float  # s / sqrt(2 nu), large-sample
+    ci_low: float
+    ci_high: float
+    confidence: float
+    within_run_stderr_rms: float  # RMS of the per-run standard errors (NaN if not given)
+    std_noise_corrected: float
+    relative: bool
+
+
+def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95) -> Repeatability:
+    """Seed 000 eq. 23 (and seed 003 eq. 9 when ``relative``): sample std over runs with a chi-square CI."""
+    v = np.asarray(values, float)
+    ok = np.isfinite(v)
+    v = v[ok]
+    q = len(v)
+    se = None if stderrs is None else np.asarray(stderrs, float)[ok]
+    nan = float("nan")
+    if q < 2:
+        return Repeatability(q, float(v.mean()) if q else nan, nan, nan, nan, nan, confidence, nan, nan, relative)
+    nu = q - 1
+    m = float(v.mean())
+    s = float(v.std(ddof=1))
+    a = 1 - confidence
+    lo = s * np.sqrt(nu / stats.chi2.ppf(1 - a / 2, nu))
+    hi = s * np.sqrt(nu / stats.chi2.ppf(a / 2, nu))
+    sse = s / np.sqrt(2 * nu)
+    rms_se = float(np.sqrt(np.mean(se**2))) if se is not None and np.all(np.isfinite(se)) else nan
+    corr = float(np.sqrt(max(s**2 - rms_se**2, 0.0))) if np.isfinite(rms_se) else nan
+    if relative:
+        d = abs(m)
+        s, lo, hi, sse = s / d, lo / d, hi / d, sse / d
+        rms_se, corr = rms_se / d, corr / d
+    return Repeatability(q, m, float(s), float(sse), float(lo), float(hi), confidence, rms_se, corr, relative)
+
+
+def bias_repeatability(biases, stderrs=None, *, confidence: float = 0.95) -> Repeatability:
+    """Seed 000 eq. 23: bias repeatability [rad/s or m/s^2] from per-run biases."""
+    return repeatability(biases, stderrs, relative=False, confidence=confidence)
+
+
+def scale_factor_repeatability(scale_factors, stderrs=None, *, confidence: float = 0.95) -> Repeatability:
+    """Seed 003 eq. 9: scale-factor repeatability std(K_i)/mean(K) (dimensionless; x 1e6 = ppm)."""
+    return repeatability(scale_factors, stderrs, relative=True, confidence=confidence)
+
+
+REPEATABILITY_COLUMNS = [
+    "device_id", "sensor", "axis", "coefficient", "method", "n_runs", "run_ids", "value", "stderr", "ci_low", "ci_high",
+    "confidence", "unit", "value_lab", "stderr_lab", "ci_low_lab", "ci_high_lab", "unit_lab",
+    "within_run_stderr_rms", "value_noise_corrected", "value_noise_corrected_lab",
+]
+
+
+def repeatability_table(coefficients: pd.DataFrame, *, confidence: float = 0.95) -> pd.DataFrame:
+    """Per device, sensor, axis and method: bias and scale-factor repeatability over the runs of a COEFFICIENT
+    TABLE (rows with coefficient 'bias' / 'scale_factor', observable, one per run)."""
+    c = coefficients[coefficients["coefficient"].isin(["bias", "scale_factor"]) & coefficients["observable"]]
+    rows = []
+    for (dev, sensor, axis, coef, method), g in c.groupby(["device_id", "sensor", "axis", "coefficient", "method"],
+                                                          sort=True):
+        rel = coef == "scale_factor"
+        r = repeatability(g["value"], g["stderr"], relative=rel, confidence=confidence)
+        name = "scale_factor_repeatability" if rel else "bias_repeatability"
+        unit, unit_lab, fac, _ = units_of(sensor, name)
+        rows.append(dict(
+            device_id=dev, sensor=sensor, axis=axis, coefficient=name, method=method, n_runs=r.n_runs,
+            run_ids=",".join(map(str, g["run_id"])), value=r.std, stderr=r.std_stderr, ci_low=r.ci_low,
+            ci_high=r.ci_high, confidence=confidence, unit=unit, value_lab=fac * r.std, stderr_lab=fac * r.std_stderr,
+            ci_low_lab=fac * r.ci_low, ci_high_lab=fac * r.ci_high, unit_lab=unit_lab,
+            within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,
+            value_noise_corrected_lab=fac * r.std_noise_corrected,
+        ))
+    return pd.DataFrame(rows, columns=REPEATABILITY_COLUMNS)
