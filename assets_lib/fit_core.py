@@ -635,3 +635,13 @@ def detect_saturation(
                     else:
                         break
     return out
+
+
+def off_diagonal_matrix(axes, attr: str, names=("x", "y", "z")) -> np.ndarray:
+    """3x3 matrix M[i, j] = value of ``getattr(axes[i], attr)[names[j]]`` (a (value, stderr, ...) tuple), zero diagonal."""
+    m = np.zeros((3, 3))
+    for i, ax in enumerate(axes):
+        for j, a in enumerate(names):
+            if j != i:
+                m[i, j] = getattr(ax, attr)[a][0]
+    return m

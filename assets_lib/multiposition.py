@@ -28,7 +28,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from assets_lib.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear, ratio_with_stderr
+from assets_lib.fit_core import (
+    DEFAULT_ALPHA,
+    DEFAULT_REL_TOL,
+    LinearFit,
+    fit_linear,
+    off_diagonal_matrix,
+    ratio_with_stderr,
+)
 from assets_lib.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
 from assets_lib.rate_fit import AXES, GyroRateFit, select_rows
 
@@ -101,12 +108,7 @@ class AccelMultipositionFit:
 
     @property
     def misalignment_rad(self) -> np.ndarray:
-        E = np.zeros((3, 3))
-        for i, ax in enumerate(self.axes):
-            for j, a in enumerate(AXES):
-                if j != i:
-                    E[i, j] = ax.misalignment_rad[a][0]
-        return E
+        return off_diagonal_matrix(self.axes, "misalignment_rad", AXES)
 
     @property
     def k2(self) -> np.ndarray:
@@ -114,12 +116,7 @@ class AccelMultipositionFit:
 
     @property
     def cross_coupling(self) -> np.ndarray:
-        Kc = np.zeros((3, 3))
-        for i, ax in enumerate(self.axes):
-            for j, a in enumerate(AXES):
-                if j != i:
-                    Kc[i, j] = ax.cross_coupling[a][0]
-        return Kc
+        return off_diagonal_matrix(self.axes, "cross_coupling", AXES)
 
     def coefficient_table(self) -> pd.DataFrame:
         rows = []

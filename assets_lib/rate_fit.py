@@ -32,6 +32,7 @@ from assets_lib.fit_core import (
     LinearFit,
     detect_saturation,
     fit_linear,
+    off_diagonal_matrix,
     ratio_with_stderr,
 )
 from assets_lib.fit_report import (
@@ -276,12 +277,7 @@ class GyroRateFit:
 
     @property
     def misalignment_rad(self) -> np.ndarray:
-        E = np.zeros((3, 3))
-        for i, ax in enumerate(self.axes):
-            for j, a in enumerate(AXES):
-                if j != i:
-                    E[i, j] = ax.misalignment_rad[a][0]
-        return E
+        return off_diagonal_matrix(self.axes, "misalignment_rad", AXES)
 
     def coefficient_table(self) -> pd.DataFrame:
         rows = []

@@ -1,0 +1,580 @@
+"""IEEE 952 noise terms from an Allan variance curve: generalised least squares with intervals, and slope reads.
+
+IEEE Std 952-1997 Annex C (C.23): sigma^2(tau) = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2,
+optionally + first-order Markov (C.25) and sinusoid (C.27) terms (seed 002 sec. 2.2 (1)-(7)).
+
+Estimator (allan.md section 6.3): the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The AVAR
+points are heteroscedastic and strongly correlated across tau, so they are fitted by non-negative generalised
+least squares with their covariance V evaluated at the current model (iterated):
+- variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from Greenhall & Riley 2003 at the model's local
+  power-law exponent (interpolated between integer alphas);
+- correlations from the large-n Gaussian approximation
+  Cov(s2_j, s2_k) ~ min(n_j, n_k) / (2 n_j n_k tau0) * integral S(f)^2 |G_j(f)|^2 |G_k(f)|^2 df,
+  |G_tau(f)|^2 = 4 sin^4(pi f tau)/(pi f tau)^2, S the model's two-sided rate PSD (the generalisation of
+  Vaccaro & Zaki 2012 to the IEEE 952 mixture).
+Each theta_k gets a Wald covariance (X' V^-1 X)^-1 and a Satterthwaite chi-square interval (theta is a variance);
+a term whose Wald interval reaches zero is reported as a one-sided upper bound, not as a number.
+The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
+0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
+when terms overlap (Guerrier, Molinari & Stebler 2016) and benchmarks/mc_noise_id.py measures by how much.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import optimize, stats
+
+from assets_lib.allan import AllanResult
+from assets_lib.allan_ci import edf_greenhall
+
+LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
+TERMS = ("Q", "N", "B", "K", "R")
+#: local log-log slope of sigma^2 for each term (alpha = -slope - 1 for the EDF)
+_TERM_ALPHA = {"Q": 2.0, "N": 0.0, "B": -1.0, "K": -2.0, "R": -2.0, "M": 0.0, "S": 0.0}
+
+RAD2DEG = 180.0 / math.pi
+G0 = 9.80665
+
+#: SI unit and (lab unit, factor SI -> lab) per sensor and parameter
+UNITS = {
+    "gyro": {
+        "Q": ("rad", "arcsec", RAD2DEG * 3600.0),
+        "N": ("rad/s/sqrt(Hz)", "deg/sqrt(h)", RAD2DEG * 60.0),
+        "B": ("rad/s", "deg/h", RAD2DEG * 3600.0),
+        "K": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
+        "R": ("rad/s^2", "deg/h/h", RAD2DEG * 3600.0**2),
+        "markov_q": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
+        "markov_tc": ("s", "s", 1.0),
+        "sin_amplitude": ("rad/s", "deg/h", RAD2DEG * 3600.0),
+        "sin_freq": ("Hz", "Hz", 1.0),
+    },
+    "accel": {
+        "Q": ("m/s", "m/s", 1.0),
+        "N": ("m/s^2/sqrt(Hz)", "m/s/sqrt(h)", 60.0),
+        "B": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
+        "K": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
+        "R": ("m/s^3", "m/s/h^2", 3600.0**2),
+        "markov_q": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
+        "markov_tc": ("s", "s", 1.0),
+        "sin_amplitude": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
+        "sin_freq": ("Hz", "Hz", 1.0),
+    },
+}
+UNITS["si"] = {k: (v[0], v[0], 1.0) for k, v in UNITS["gyro"].items()}
+UNITS["si"].update({k: ("", "", 1.0) for k in ("Q", "N", "B", "K", "R")})
+
+
+def sensor_of(channel: str = "", unit: str = "") -> str:
+    """'gyro' | 'accel' | 'si' from a channel name (gyro_*, accel_*) or an SI unit string."""
+    c = channel.lower()
+    if c.startswith("gyro") or "radps" in c:
+        return "gyro"
+    if c.startswith("acc") or "mps2" in c:
+        return "accel"
+    if unit == "rad/s":
+        return "gyro"
+    if unit in ("m/s^2", "m/s2"):
+        return "accel"
+    return "si"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# model basis
+# --------------------------------------------------------------------------------------------------------------
+def basis(tau_s: np.ndarray, terms: Sequence[str] = TERMS) -> np.ndarray:
+    """IEEE Std 952-1997 eq. C.23: columns g_k(tau) with sigma^2 = sum_k theta_k g_k, theta = (Q^2, N^2, ...)."""
+    tau = np.asarray(tau_s, dtype=float)
+    cols = {
+        "Q": 3.0 / tau**2,
+        "N": 1.0 / tau,
+        "B": np.full_like(tau, LN2_PI),
+        "K": tau / 3.0,
+        "R": tau**2 / 2.0,
+    }
+    return np.column_stack([cols[t] for t in terms])
+
+
+def markov_avar_unit(tau_s: np.ndarray, tc_s: float) -> np.ndarray:
+    """IEEE Std 952-1997 eq. C.25 (seed 002 (6)): AVAR of a first-order Markov rate with (q_c T_c)^2 = 1."""
+    tau = np.asarray(tau_s, dtype=float)
+    r = tau / tc_s
+    return (1.0 / tau) * (1.0 - (1.0 / (2.0 * r)) * (3.0 - 4.0 * np.exp(-r) + np.exp(-2.0 * r)))
+
+
+def sinusoid_avar_unit(tau_s: np.ndarray, f0_hz: float) -> np.ndarray:
+    """IEEE Std 952-1997 eq. C.27 (seed 002 (7)): AVAR of a sinusoidal rate of unit amplitude at f0."""
+    x = math.pi * f0_hz * np.asarray(tau_s, dtype=float)
+    return (np.sin(x) ** 2 / x) ** 2
+
+
+# --------------------------------------------------------------------------------------------------------------
+# covariance of AVAR estimates at a model
+# --------------------------------------------------------------------------------------------------------------
+def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s: float | None) -> np.ndarray:
+    """IEEE Std 952-1997 Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
+    w = 2.0 * np.pi * f
+    S = np.zeros_like(f)
+    S += theta.get("Q", 0.0) * w**2 * tau0
+    S += theta.get("N", 0.0)
+    S += theta.get("B", 0.0) / (2.0 * np.pi * f)
+    S += theta.get("K", 0.0) / w**2
+    if tc_s is not None and theta.get("M", 0.0) > 0:
+        # (q_c T_c)^2 = theta_M; Lorentzian with the same low-frequency level as an ARW of N^2 = theta_M
+        S += theta["M"] / (1.0 + (w * tc_s) ** 2)
+    return S
+
+
+def avar_correlation(
+    tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
+) -> np.ndarray:
+    """Large-n Gaussian correlation of overlapping AVAR estimates at a model (Vaccaro & Zaki 2012, generalised)."""
+    tau = np.asarray(tau_s, dtype=float)
+    tau0 = 1.0 / rate_hz
+    f_lo = 1e-3 / tau.max()
+    f_hi = 0.5 * rate_hz
+    c = 8.0  # above f tau = c the sin^4 factor is replaced by its mean 3/8
+    n_grid = int(np.ceil(np.log10(f_hi / f_lo) * 200)) + 2
+    f = np.geomspace(f_lo, f_hi, n_grid)
+    lnf = np.log(f)
+    df = np.gradient(lnf) * f  # trapezoid-like weights on the log grid
+    S = _psd_two_sided(f, theta, tau0, tc_s)
+    u = np.pi * np.outer(f, tau)  # (grid, taus)
+    fast = np.outer(f, tau) > c
+    s4 = np.where(fast, 3.0 / 8.0, np.sin(u) ** 4)
+    G = 4.0 * s4 / u**2
+    Wv = (S**2 * df)[:, None]
+    I = (G * Wv).T @ G
+    # diagonal: the mean of sin^8 is 35/128, not (3/8)^2
+    diag = np.einsum("gj,gj->j", G * Wv, G * np.where(fast, 35.0 / 18.0, 1.0))
+    I[np.diag_indices_from(I)] = diag
+    n = np.asarray(n_terms, dtype=float)
+    nmin = np.minimum.outer(n, n)
+    cov = nmin / np.outer(n, n) * I
+    d = np.sqrt(np.diag(cov))
+    R = cov / np.outer(d, d)
+    np.fill_diagonal(R, 1.0)
+    return R
+
+
+def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarray, n_phase: int) -> np.ndarray:
+    """Greenhall EDF at the mixture's local power-law exponent (interpolated between integer alphas)."""
+    tot = parts.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(tot[:, None] > 0, parts / tot[:, None], 0.0)
+    a_eff = np.clip((share * alphas[None, :]).sum(axis=1), -2.0, 2.0)
+    out = np.empty(len(tau))
+    for j in range(len(tau)):
+        lo = math.floor(a_eff[j])
+        hi = min(lo + 1, 2)
+        w = a_eff[j] - lo
+        e_lo = edf_greenhall(int(lo), 2, int(m[j]), n_phase, True, False)
+        e_hi = edf_greenhall(int(hi), 2, int(m[j]), n_phase, True, False) if w > 0 else e_lo
+        out[j] = (1.0 - w) * e_lo + w * e_hi
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# results
+# --------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class NoiseParameter:
+    """One noise coefficient: SI value with interval, the same in lab units, method and upper-bound flag."""
+
+    name: str
+    value: float  #: SI; NaN when the term is only bounded (is_upper_bound)
+    ci_lo: float
+    ci_hi: float  #: the upper bound when is_upper_bound
+    unit: str
+    value_lab: float
+    ci_lo_lab: float
+    ci_hi_lab: float
+    unit_lab: str
+    method: str  #: 'fit' | 'slope'
+    is_upper_bound: bool
+    ci_level: float = 0.95
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """IEEE 952 fit of one channel: parameters, theta (variances) and their covariance, the model curve."""
+
+    channel: str
+    sensor: str
+    parameters: tuple  #: NoiseParameter, method 'fit'
+    slope_parameters: tuple  #: NoiseParameter, method 'slope'
+    terms: tuple  #: names of theta entries ('Q', 'N', 'B', 'K', 'R'[, 'M'][, 'S'])
+    theta: np.ndarray  #: (Q^2, N^2, B^2, K^2, R^2, ...) SI
+    theta_cov: np.ndarray
+    tau_s: np.ndarray  #: taus used by the fit
+    avar: np.ndarray  #: measured AVAR at those taus
+    chi2: float  #: generalised residual sum of squares
+    dof: int
+    markov_tc_s: float | None = None
+    sin_f0_hz: float | None = None
+    iterations: int = 0
+
+    def term_avar(self, tau_s: np.ndarray) -> dict[str, np.ndarray]:
+        """IEEE Std 952-1997 eq. C.23: each term's contribution to sigma^2(tau)."""
+        tau = np.asarray(tau_s, dtype=float)
+        out = {}
+        for k, t in enumerate(self.terms):
+            if t in TERMS:
+                out[t] = self.theta[k] * basis(tau, (t,))[:, 0]
+            elif t == "M":
+                out[t] = self.theta[k] * markov_avar_unit(tau, self.markov_tc_s)
+            elif t == "S":
+                out[t] = self.theta[k] * sinusoid_avar_unit(tau, self.sin_f0_hz)
+        return out
+
+    def model_avar(self, tau_s: np.ndarray) -> np.ndarray:
+        parts = self.term_avar(tau_s)
+        return np.sum(list(parts.values()), axis=0) if parts else np.zeros(np.shape(tau_s))
+
+    def parameter(self, name: str, method: str = "fit") -> NoiseParameter:
+        for p in self.parameters if method == "fit" else self.slope_parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+
+def _param(name, value, lo, hi, sensor, method, upper, ci_level) -> NoiseParameter:
+    unit, unit_lab, f = UNITS[sensor][name]
+    return NoiseParameter(
+        name=name,
+        value=float(value),
+        ci_lo=float(lo),
+        ci_hi=float(hi),
+        unit=unit,
+        value_lab=float(value) * f,
+        ci_lo_lab=float(lo) * f,
+        ci_hi_lab=float(hi) * f,
+        unit_lab=unit_lab,
+        method=method,
+        is_upper_bound=bool(upper),
+        ci_level=float(ci_level),
+    )
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the fit
+# --------------------------------------------------------------------------------------------------------------
+def _nn_gls(X: np.ndarray, a: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, float]:
+    """min (a - X t)' V^-1 (a - X t) subject to t >= 0 (Lawson-Hanson NNLS on the whitened system)."""
+    L = np.linalg.cholesky(V)
+    Xw = np.linalg.solve(L, X)
+    aw = np.linalg.solve(L, a)
+    scale = np.linalg.norm(Xw, axis=0)
+    scale[scale == 0] = 1.0
+    t, rnorm = optimize.nnls(Xw / scale, aw, maxiter=50 * X.shape[1])
+    return t / scale, float(rnorm**2)
+
+
+def _regularise(V: np.ndarray) -> np.ndarray:
+    d = np.sqrt(np.diag(V))
+    R = V / np.outer(d, d)
+    R = 0.999 * R + 0.001 * np.eye(len(d))  # keeps the near-singular dense-grid correlation invertible
+    return R * np.outer(d, d)
+
+
+def _select(res: AllanResult, max_m_fraction: float, min_terms: int) -> np.ndarray:
+    ok = (res.n_terms >= min_terms) & (res.m <= max_m_fraction * res.n_samples) & np.isfinite(res.adev)
+    ok &= res.adev > 0
+    return ok
+
+
+def fit_noise(
+    res: AllanResult,
+    terms: Sequence[str] = TERMS,
+    *,
+    markov: bool = False,
+    sinusoid: bool = False,
+    ci_level: float = 0.95,
+    sensor: str | None = None,
+    max_m_fraction: float = 0.25,
+    min_terms: int = 4,
+    iterations: int = 4,
+) -> NoiseFit:
+    """IEEE Std 952-1997 Annex C fit by iterated non-negative GLS; intervals on every term (see module doc)."""
+    if res.kind != "oadev":
+        raise ValueError("fit_noise expects an overlapping Allan deviation (kind='oadev')")
+    sensor = sensor or sensor_of(res.channel, res.unit)
+    sel = _select(res, max_m_fraction, min_terms)
+    if sel.sum() < len(terms) + 1:
+        raise ValueError(f"only {int(sel.sum())} usable taus for {len(terms)} terms: record too short")
+    tau = res.tau_s[sel]
+    a = res.avar[sel]
+    m = res.m[sel]
+    n = res.n_terms[sel].astype(float)
+    n_phase = res.n_samples + 1 if res.data_type == "rate" else res.n_samples
+    term_list = list(terms)
+    X = basis(tau, term_list)
+    tc = f0 = None
+    if markov:
+        term_list.append("M")
+    if sinusoid:
+        term_list.append("S")
+
+    def design(tc_, f0_):
+        cols = [X]
+        if markov:
+            cols.append(markov_avar_unit(tau, tc_)[:, None])
+        if sinusoid:
+            cols.append(sinusoid_avar_unit(tau, f0_)[:, None])
+        return np.hstack(cols)
+
+    alphas = np.array([_TERM_ALPHA[t] for t in term_list])
+
+    def covariance(theta_vec, Xd):
+        parts = Xd * theta_vec[None, :]
+        model = parts.sum(axis=1)
+        model = np.where(model > 0, model, a)
+        edf = _edf_mix(tau, np.clip(parts, 0, None), alphas, m, n_phase)
+        th = {t: float(v) for t, v in zip(term_list, theta_vec)}
+        R = avar_correlation(tau, n, th, res.rate_hz, tc)
+        d = np.sqrt(2.0 * model**2 / edf)
+        return _regularise(R * np.outer(d, d))
+
+    # start: diagonal weights from the measured points (NIST SP 1065 EDF of the identified noise)
+    V = np.diag(2.0 * a**2 / np.where(np.isfinite(res.edf[sel]) & (res.edf[sel] > 0), res.edf[sel], 1.0))
+    grid_tc = np.geomspace(tau.min() * 2, tau.max() / 2, 24) if markov else [None]
+    grid_f0 = np.geomspace(1.0 / tau.max(), 0.5 / tau.min(), 32) if sinusoid else [None]
+    theta = None
+    it = 0
+    for it in range(1, iterations + 1):
+        best = None
+        for tc_ in grid_tc:
+            for f0_ in grid_f0:
+                Xd = design(tc_, f0_)
+                t_, rss = _nn_gls(Xd, a, V)
+                if best is None or rss < best[0]:
+                    best = (rss, t_, tc_, f0_, Xd)
+        rss, theta_new, tc, f0, Xd = best
+        if markov or sinusoid:
+            grid_tc = [tc] if markov else grid_tc
+            grid_f0 = [f0] if sinusoid else grid_f0
+        converged = theta is not None and np.allclose(theta_new, theta, rtol=1e-4, atol=0)
+        theta = theta_new
+        V = covariance(theta, Xd)
+        if converged:
+            break
+    Xd = design(tc, f0)
+    theta, rss = _nn_gls(Xd, a, V)
+    L = np.linalg.cholesky(V)
+    Xw = np.linalg.solve(L, Xd)
+    info = Xw.T @ Xw
+    cov = np.linalg.pinv(info)
+    params, slope_params = [], []
+    z2 = stats.norm.ppf(0.5 + ci_level / 2.0)
+    z1 = stats.norm.ppf(ci_level)
+    for k, t in enumerate(term_list):
+        th, sd = float(theta[k]), float(math.sqrt(max(cov[k, k], 0.0)))
+        name = {"M": "markov_q", "S": "sin_amplitude"}.get(t, t)
+        if th <= 0 or th - z2 * sd <= 0:
+            ub = max(th, 0.0) + z1 * sd
+            ub_val = _theta_to_param(t, ub, tc)
+            params.append(_param(name, math.nan, 0.0, ub_val, sensor, "fit", True, ci_level))
+        else:
+            nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
+            lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
+            hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
+            params.append(
+                _param(
+                    name,
+                    _theta_to_param(t, th, tc),
+                    _theta_to_param(t, lo, tc),
+                    _theta_to_param(t, hi, tc),
+                    sensor,
+                    "fit",
+                    False,
+                    ci_level,
+                )
+            )
+    if markov:
+        params.append(_param("markov_tc", tc, tc, tc, sensor, "fit", False, ci_level))
+    if sinusoid:
+        params.append(_param("sin_freq", f0, f0, f0, sensor, "fit", False, ci_level))
+    slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level)
+    return NoiseFit(
+        channel=res.channel,
+        sensor=sensor,
+        parameters=tuple(params),
+        slope_parameters=tuple(slope_params),
+        terms=tuple(term_list),
+        theta=theta,
+        theta_cov=cov,
+        tau_s=tau,
+        avar=a,
+        chi2=rss,
+        dof=int(len(a) - np.count_nonzero(theta)),
+        markov_tc_s=tc,
+        sin_f0_hz=f0,
+        iterations=it,
+    )
+
+
+def _theta_to_param(t: str, th: float, tc: float | None) -> float:
+    """theta -> coefficient: sqrt for the IEEE terms; Markov q_c = sqrt(theta) / T_c (theta = (q_c T_c)^2)."""
+    if t == "M":
+        return math.sqrt(max(th, 0.0)) / tc
+    return math.sqrt(max(th, 0.0))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# classic slope reads
+# --------------------------------------------------------------------------------------------------------------
+def slope_reads(res: AllanResult, *, sensor: str | None = None, ci_level: float = 0.95, tol: float = 0.25) -> list:
+    """IEEE Std 952-1997 C.3 / seed 002 sec. 2.2: single-line reads of Q, N, B, K, R on the log-log ADEV curve.
+
+    N: the -1/2 line through the point whose local slope is closest to -1/2, read at tau = 1 s; K: the +1/2
+    line read at tau = 3 s; Q: -1 line at tau = sqrt(3) s; R: +1 line at tau = sqrt(2) s; B: the curve minimum
+    / sqrt(2 ln2 / pi). The interval carries the chi-square interval of the deviation at the read point
+    (at ``ci_level``, from the point's EDF). A read is omitted when no part of the curve has a slope within
+    ``tol`` of the line's.
+    """
+    sensor = sensor or sensor_of(res.channel, res.unit)
+    ok = (res.n_terms >= 4) & (res.adev > 0) & np.isfinite(res.adev)
+    tau, dev, edf = res.tau_s[ok], res.adev[ok], res.edf[ok]
+    out = []
+    if len(tau) < 3:
+        return out
+    from assets_lib.allan_ci import chi2_interval
+
+    lo_all, hi_all = chi2_interval(dev, edf, ci_level)
+    slope = np.gradient(np.log(dev), np.log(tau))
+    for name, target, tau_read in (
+        ("Q", -1.0, math.sqrt(3.0)),
+        ("N", -0.5, 1.0),
+        ("K", 0.5, 3.0),
+        ("R", 1.0, math.sqrt(2.0)),
+    ):
+        j = int(np.argmin(np.abs(slope - target)))
+        if abs(slope[j] - target) > tol:
+            continue
+        f = (tau_read / tau[j]) ** target
+        val = dev[j] * f
+        if name == "Q":
+            val, lo, hi = val * tau_read / math.sqrt(3.0), lo_all[j] * f, hi_all[j] * f
+        else:
+            lo, hi = lo_all[j] * f, hi_all[j] * f
+        out.append(_param(name, val, lo, hi, sensor, "slope", False, ci_level))
+    j = int(np.argmin(dev))
+    c = math.sqrt(LN2_PI)
+    out.append(_param("B", dev[j] / c, lo_all[j] / c, hi_all[j] / c, sensor, "slope", False, ci_level))
+    order = {n: i for i, n in enumerate(TERMS)}
+    out.sort(key=lambda p: order.get(p.name, 99))
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# tables and plots
+# --------------------------------------------------------------------------------------------------------------
+NOISE_COLUMNS = [
+    "channel",
+    "parameter",
+    "value",
+    "ci_lo",
+    "ci_hi",
+    "unit",
+    "value_lab",
+    "ci_lo_lab",
+    "ci_hi_lab",
+    "unit_lab",
+    "method",
+    "is_upper_bound",
+    "ci_level",
+]
+
+
+def fit_all(results: Mapping[str, AllanResult], **kw) -> dict[str, NoiseFit]:
+    """:func:`fit_noise` for each channel of ``allan_deviations``."""
+    return {name: fit_noise(r, **kw) for name, r in results.items()}
+
+
+def noise_table(fits, **kw) -> pd.DataFrame:
+    """Tidy table (channel, parameter, value, ci_lo, ci_hi, unit, *_lab, method, is_upper_bound) of fits.
+
+    ``fits``: mapping channel -> NoiseFit, or mapping channel -> AllanResult (fitted here with ``kw``).
+    """
+    if isinstance(fits, NoiseFit):
+        fits = {fits.channel: fits}
+    fits = {k: (fit_noise(v, **kw) if isinstance(v, AllanResult) else v) for k, v in fits.items()}
+    rows = []
+    for ch, fit in fits.items():
+        for p in list(fit.parameters) + list(fit.slope_parameters):
+            rows.append(
+                {
+                    "channel": ch,
+                    "parameter": p.name,
+                    "value": p.value,
+                    "ci_lo": p.ci_lo,
+                    "ci_hi": p.ci_hi,
+                    "unit": p.unit,
+                    "value_lab": p.value_lab,
+                    "ci_lo_lab": p.ci_lo_lab,
+                    "ci_hi_lab": p.ci_hi_lab,
+                    "unit_lab": p.unit_lab,
+                    "method": p.method,
+                    "is_upper_bound": p.is_upper_bound,
+                    "ci_level": p.ci_level,
+                }
+            )
+    return pd.DataFrame(rows, columns=NOISE_COLUMNS)
+
+
+_TERM_STYLE = {"Q": "-1", "N": "-1/2", "B": "0", "K": "+1/2", "R": "+1", "M": "Markov", "S": "sine"}
+
+
+def plot_allan(results, fits: Mapping[str, NoiseFit] | None = None, path=None, title: str = "") -> bytes:
+    """Log-log Allan deviation per channel with chi-square bars, the fitted model and each term's line (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    if isinstance(results, AllanResult):
+        results = {results.channel or "ch": results}
+    names = list(results)
+    ncol = min(3, len(names)) or 1
+    nrow = int(math.ceil(len(names) / ncol)) or 1
+    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 4.2 * nrow), squeeze=False)
+    for ax, name in zip(axes.ravel(), names):
+        r = results[name]
+        ok = np.isfinite(r.adev) & (r.adev > 0)
+        yerr = np.vstack([r.adev - r.ci_lo, r.ci_hi - r.adev])[:, ok]
+        yerr = np.where(np.isfinite(yerr), yerr, 0.0)
+        ax.errorbar(r.tau_s[ok], r.adev[ok], yerr=yerr, fmt="o", ms=2.5, lw=0.8, color="k", label=r.kind.upper())
+        fit = fits.get(name) if fits else None
+        if fit is not None:
+            tt = np.geomspace(r.tau_s[ok].min(), r.tau_s[ok].max(), 200)
+            ax.loglog(tt, np.sqrt(fit.model_avar(tt)), "r-", lw=1.5, label="fit")
+            for t, v in fit.term_avar(tt).items():
+                if np.any(v > 0):
+                    ax.loglog(tt, np.sqrt(np.clip(v, 1e-300, None)), "--", lw=0.9, label=f"{t} ({_TERM_STYLE[t]})")
+            ymin = r.adev[ok].min() / 5
+            ax.set_ylim(bottom=ymin)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("tau [s]")
+        ax.set_ylabel(f"{r.kind.upper()} [{r.unit or 'SI'}]")
+        ax.set_title(name)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(names) :]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    data = buf.getvalue()
+    if path is not None:
+        with open(path, "wb") as fh:
+            fh.write(data)
+    return data
