@@ -11,7 +11,7 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipelines.defs.sensors import landing_sensor, range_tags
+from pipelines.defs.sensors import JOB_LEVEL, RANGE_END, RANGE_START, contiguous_blocks, landing_sensor, range_tags
 from pipelines.partitions import captures, devices
 from pipelines.resources import LabArchive
 
@@ -33,7 +33,8 @@ def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterIn
 
 def register_landed_runs(instance: dg.DagsterInstance, archive: LabArchive) -> list[str]:
     """Evaluate the landing sensor once and apply its partition requests; returns the new capture keys."""
-    result = landing_sensor(dg.build_sensor_context(instance=instance, resources={"archive": archive}))
+    with dg.build_sensor_context(instance=instance, resources={"archive": archive}) as context:
+        result = landing_sensor(context)
     new: list[str] = []
     for req in getattr(result, "dynamic_partitions_requests", None) or []:
         instance.add_dynamic_partitions(req.partitions_def_name, list(req.partition_keys))
@@ -45,51 +46,77 @@ def register_landed_runs(instance: dg.DagsterInstance, archive: LabArchive) -> l
 @dataclass
 class LaunchSummary:
     runs: list[tuple[str, str, bool]] = field(default_factory=list)  # (job, run id, success)
+    succeeded_steps: set[str] = field(default_factory=set)  # step keys (= stage names) that succeeded in some run
+    attempted: set[tuple[str, str]] = field(default_factory=set)  # (stage, partition) whose step succeeded
 
     @property
     def success(self) -> bool:
         return all(ok for _, _, ok in self.runs)
 
 
-def _contiguous_blocks(ordered: list[str], wanted: set[str]) -> list[tuple[str, str]]:
-    blocks, start, prev = [], None, None
-    for k in ordered:
-        if k in wanted:
-            start = start or k
-            prev = k
-        elif start:
-            blocks.append((start, prev))
-            start = None
-    if start:
-        blocks.append((start, prev))
-    return blocks
+_contiguous_blocks = contiguous_blocks  # backward-compatible name
+
+
+def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, tags: dict | None = None,
+            asset_selection=None, quiet: bool = True, summary: LaunchSummary | None = None) -> LaunchSummary:
+    """One in-process run of ``job_name`` (optionally a subset of its assets) on ``instance``."""
+    summary = summary if summary is not None else LaunchSummary()
+    res = defs.resolve_job_def(job_name).execute_in_process(
+        instance=instance, run_config=QUIET if quiet else None, tags=tags, asset_selection=asset_selection,
+        raise_on_error=False)
+    summary.runs.append((job_name, res.run_id, res.success))
+    steps = {e.step_key for e in res.all_events if e.is_step_success and e.step_key}
+    summary.succeeded_steps |= steps
+    keys = _covered_keys(instance, job_name, tags or {})
+    summary.attempted |= {(step, k) for step in steps for k in keys}
+    return summary
+
+
+def _covered_keys(instance: dg.DagsterInstance, job_name: str, tags: dict) -> list[str]:
+    """Partition keys a run of ``job_name`` with ``tags`` covers (the fleet key for unpartitioned jobs)."""
+    from pipelines.stage import FLEET_KEY
+
+    if RANGE_START not in tags:
+        return [FLEET_KEY]
+    name = captures.name if JOB_LEVEL.get(job_name) == "capture" else devices.name
+    ordered = list(instance.get_dynamic_partitions(name))
+    try:
+        return ordered[ordered.index(tags[RANGE_START]): ordered.index(tags[RANGE_END]) + 1]
+    except ValueError:
+        return []
 
 
 def execute(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, partitions_name: str | None,
             keys: set[str] | None = None, quiet: bool = True, summary: LaunchSummary | None = None) -> LaunchSummary:
     """Run ``job_name`` over ``keys`` (all registered partitions when None), one run per contiguous block."""
-    summary = summary or LaunchSummary()
-    job = defs.resolve_job_def(job_name)
-    cfg = QUIET if quiet else None
+    summary = summary if summary is not None else LaunchSummary()
     if partitions_name is None:
-        res = job.execute_in_process(instance=instance, run_config=cfg, raise_on_error=False)
-        summary.runs.append((job_name, res.run_id, res.success))
-        return summary
+        return run_job(defs, instance, job_name, quiet=quiet, summary=summary)
     ordered = list(instance.get_dynamic_partitions(partitions_name))
     wanted = set(ordered) if keys is None else set(keys) & set(ordered)
-    for first, last in _contiguous_blocks(ordered, wanted):
-        res = job.execute_in_process(instance=instance, run_config=cfg, tags=range_tags(first, last), raise_on_error=False)
-        summary.runs.append((job_name, res.run_id, res.success))
+    for first, last in contiguous_blocks(ordered, wanted):
+        run_job(defs, instance, job_name, tags=range_tags(first, last), quiet=quiet, summary=summary)
     return summary
 
 
 def materialize_archive(defs: dg.Definitions, instance: dg.DagsterInstance, capture_keys: set[str] | None = None,
-                        device_keys: set[str] | None = None, quiet: bool = True) -> LaunchSummary:
-    """The main job: per-run stages, then per-device stages, then the fleet stage."""
+                        device_keys: set[str] | None = None, quiet: bool = True,
+                        record_outcomes: bool = True) -> LaunchSummary:
+    """The main job: per-run stages, then per-device stages, then the fleet stage.
+
+    With ``record_outcomes``, partitions whose stage ran but produced no output are noted for ``reprocess``
+    (``pipelines.reprocess.record_no_output``), so an unchanged archive has nothing stale afterwards."""
     summary = execute(defs, instance, "calibrate_captures", captures.name, capture_keys, quiet)
     job_names = {j.name for j in defs.resolve_all_job_defs()}
     if "calibrate_devices" in job_names:
         execute(defs, instance, "calibrate_devices", devices.name, device_keys, quiet, summary)
     if "fleet_summary" in job_names:
         execute(defs, instance, "fleet_summary", None, None, quiet, summary)
+    if record_outcomes and capture_keys is None and device_keys is None:
+        from pipelines import reprocess
+
+        store = defs.resources["store"].store
+        archive = defs.resources["archive"]
+        plan = reprocess.plan_for_instance(instance, store, archive, use_ledger=False)
+        reprocess.record_no_output(store, plan, summary.attempted)
     return summary
