@@ -29,7 +29,7 @@ import dagster as dg
 from pipelines.defs.sensors import CAPTURES_JOB, DEVICES_JOB, FLEET_JOB, contiguous_blocks, range_tags
 from pipelines.partitions import captures, devices, split_capture_key
 from pipelines.resources import LabArchive
-from pipelines.stage import FLEET_KEY, STAGES, StageSpec, expected_version, raw_versions
+from pipelines.stage import FLEET_KEY, STAGES, StageSpec, expected_version, input_versions
 from pipelines.storage import VersionedStore
 
 LEDGER = Path("_reprocess") / "no_output.json"
@@ -147,22 +147,8 @@ class _Planner:
         return [key]
 
     def inputs(self, spec: StageSpec, key: str) -> dict[str, str] | None:
-        """Mirror of ``pipelines.stage.input_versions`` on expected upstream versions."""
-        if spec.level == "capture" and not spec.upstream:
-            d = self.archive.run_dir(key)
-            return raw_versions(d) if d.is_dir() else None
-        out: dict[str, str] = {}
-        for up in spec.upstream:
-            for k in self.upstream_keys(spec, up, key):
-                v = self.version_of(up, k)
-                if v is None:
-                    if spec.level == "capture":
-                        return None
-                    continue
-                out[f"{up}/{k}"] = v
-        if spec.level != "capture" and not out:
-            return None
-        return out
+        """``pipelines.stage.input_versions`` on expected upstream versions."""
+        return input_versions(spec, key, self.store, self.archive, self.version_of, self.upstream_keys)
 
     def test_kind(self, key: str, inputs: dict[str, str]) -> str | None:
         v = inputs.get(f"ingested_run/{key}")

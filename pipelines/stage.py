@@ -97,24 +97,32 @@ def raw_versions(run_dir: Path) -> dict[str, str]:
     return {f"raw/{p.name}": sha256_file(p) for p in sorted(Path(run_dir).iterdir()) if p.is_file()}
 
 
+def default_upstream_keys(spec: StageSpec, up: str, key: str, store: VersionedStore) -> list[str]:
+    """Partitions of upstream ``up`` that ``spec`` reads for ``key``: the same key, or all of the device's
+    captures (device stages), or everything (fleet stages)."""
+    level = STAGES[up].level
+    if level == "capture" and spec.level != "capture":
+        return [k for k in store.partitions(up) if spec.level == "fleet" or split_capture_key(k)[0] == key]
+    if level == "device" and spec.level == "fleet":
+        return store.partitions(up)
+    return [key]
+
+
 def input_versions(spec: StageSpec, key: str, store: VersionedStore, archive: LabArchive | None,
-                   capture_keys=None):
-    """Versions of what ``spec`` computes ``key`` from, or None when an input is missing."""
+                   version_of: Callable | None = None, upstream_keys: Callable | None = None):
+    """Versions of what ``spec`` computes ``key`` from, or None when an input is missing.
+
+    ``version_of(stage, key)`` defaults to the stored CURRENT version; reprocessing plans pass expected ones.
+    """
+    version_of = version_of or store.current_version
+    upstream_keys = upstream_keys or (lambda s, up, k: default_upstream_keys(s, up, k, store))
     if spec.level == "capture" and not spec.upstream:
         d = archive.run_dir(key)
         return raw_versions(d) if d.is_dir() else None
     out: dict[str, str] = {}
     for up in spec.upstream:
-        level = STAGES[up].level
-        if level == "capture" and spec.level != "capture":
-            keys = [k for k in (capture_keys or store.partitions(up))
-                    if spec.level == "fleet" or split_capture_key(k)[0] == key]
-        elif level == "device" and spec.level == "fleet":
-            keys = store.partitions(up)
-        else:
-            keys = [key]
-        for k in keys:
-            v = store.current_version(up, k)
+        for k in upstream_keys(spec, up, key):
+            v = version_of(up, k)
             if v is None:
                 if spec.level == "capture":
                     return None
