@@ -231,7 +231,13 @@ def _check_finite(block: np.ndarray, where: int) -> None:
 
 
 def _block_sum(b: np.ndarray) -> float:
-    """Sequential sum of pairwise sums over SUM_BLOCK pieces of a contiguous float64 block (the canonical order)."""
+    """Sequential sum of the sums of SUM_BLOCK pieces of a contiguous float64 block (the canonical order).
+
+    Each piece is summed by numba's vectorised loop when numba is present, else by numpy's pairwise sum; every
+    route of one installation uses the same function, so the mean is bit-identical across routes.
+    """
+    if HAVE_NUMBA:
+        return float(_nb_block_sum(b, SUM_BLOCK))
     t = 0.0
     for a in range(0, len(b), SUM_BLOCK):
         t += float(np.add.reduce(b[a : a + SUM_BLOCK]))
@@ -249,12 +255,15 @@ def _phase_spec_from_blocks(blocks: Iterable[np.ndarray], data_type: str, sink=N
     scratch = np.empty(PHASE_BLOCK)
     for raw in blocks:
         b = _as_f64_block(raw, scratch)
-        _check_finite(b, n)
+        bs = _block_sum(b)
+        if not math.isfinite(bs):  # NaN / inf propagate into the sum: locate them only then
+            _check_finite(b, n)
+            raise ValueError(f"samples {n}..{n + len(b)} overflow a float64 sum")
         if first is None and len(b):
             first = float(b[0])
         if len(b):
             last = float(b[-1])
-        total += _block_sum(b)
+        total += bs
         n += len(b)
         if sink is not None:
             sink.write(b.tobytes())
@@ -510,6 +519,20 @@ if HAVE_NUMBA:
     @_numba.njit(boundscheck=False, cache=True)
     def _nb_block(x0, x1, x2):  # pragma: no cover - compiled
         return _nb_ssq(x0, x1, x2)
+
+    @_numba.njit(fastmath=_FM, boundscheck=False, cache=True)
+    def _nb_piece_sum(b):  # pragma: no cover - compiled
+        s = 0.0
+        for k in range(b.shape[0]):
+            s += b[k]
+        return s
+
+    @_numba.njit(boundscheck=False, cache=True)
+    def _nb_block_sum(b, piece):  # pragma: no cover - compiled
+        t = 0.0
+        for a in range(0, b.shape[0], piece):
+            t += _nb_piece_sum(b[a : min(a + piece, b.shape[0])])
+        return t
 
     @_numba.njit(boundscheck=False, cache=True)
     def _nb_phase_rate(b, mean, x_last, out):  # pragma: no cover - compiled
@@ -857,8 +880,11 @@ def _deviations_rowmajor(arr, rate_hz, taus, *, channels=None, units=None, kind=
         for c in range(C):
             seg = xs[c][lead + a : lead + a + len(blk)]
             np.copyto(seg, blk[:, c], casting="same_kind")
-            _check_finite(seg, a)
-            totals[c] += float(np.add.reduce(seg))
+            bs = _block_sum(seg)
+            if not math.isfinite(bs):
+                _check_finite(seg, a)
+                raise ValueError(f"samples {a}..{a + len(seg)} overflow a float64 sum")
+            totals[c] += bs
     kern = _kernel(backend)
     m = _resolve_m(taus, n, rate_hz, kind, data_type)
     out = {}

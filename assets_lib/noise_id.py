@@ -553,9 +553,12 @@ def plot_allan(results, fits: Mapping[str, NoiseFit] | None = None, path=None, t
         if fit is not None:
             tt = np.geomspace(r.tau_s[ok].min(), r.tau_s[ok].max(), 200)
             ax.loglog(tt, np.sqrt(fit.model_avar(tt)), "r-", lw=1.5, label="fit")
+            bound = {p.name: p.is_upper_bound for p in fit.parameters}
             for t, v in fit.term_avar(tt).items():
                 if np.any(v > 0):
-                    ax.loglog(tt, np.sqrt(np.clip(v, 1e-300, None)), "--", lw=0.9, label=f"{t} ({_TERM_STYLE[t]})")
+                    ub = bound.get({"M": "markov_q", "S": "sin_amplitude"}.get(t, t), False)
+                    ax.loglog(tt, np.sqrt(np.clip(v, 1e-300, None)), ":" if ub else "--", lw=0.9,
+                              label=f"{t} ({_TERM_STYLE[t]})" + (" upper bound" if ub else ""))
             ymin = r.adev[ok].min() / 5
             ax.set_ylim(bottom=ymin)
         ax.set_xscale("log")
