@@ -12,8 +12,10 @@ The registry ``STAGES`` is what staleness checks and reprocessing walk.
 
 
 import base64
+import functools
 import hashlib
 import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -223,19 +225,44 @@ def _dep(up: str, level: str) -> dg.AssetDep:
     return dg.AssetDep(up, partition_mapping=dg.AllPartitionMapping())
 
 
+SOURCE_TAG = "+src."
+
+
+@functools.lru_cache(maxsize=None)
+def _source_digest(module_file: str) -> str:
+    """sha256 of the science and contract sources (``assets_lib``, ``raw_schemas``) and the stage's module."""
+    root = Path(__file__).resolve().parents[1]
+    files = sorted(root.glob("assets_lib/**/*.py")) + sorted(root.glob("raw_schemas/*.py")) + [Path(module_file)]
+    h = hashlib.sha256()
+    for f in files:
+        if f.is_file():
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def full_code_version(declared: str, compute) -> str:
+    """The declared code version plus a digest of the code it runs, so a science change that forgot to bump the
+    declared version still makes every output stale (``imulab reprocess`` and records see it)."""
+    module = sys.modules.get(compute.__module__)
+    module_file = getattr(module, "__file__", None) or ""
+    return f"{declared}{SOURCE_TAG}{_source_digest(module_file)}"
+
+
 def stage(name: str, *, level: str, group: str, code_version: str, upstream=(), description: str = "",
           applies_to=None, kinds=("parquet",)):
     """Register ``compute`` as a stage and return its Dagster asset."""
 
     def deco(compute):
-        spec = StageSpec(name, level, code_version, tuple(upstream), compute,
+        full = full_code_version(code_version, compute)
+        spec = StageSpec(name, level, full, tuple(upstream), compute,
                          tuple(applies_to) if applies_to else None)
         STAGES[name] = spec
 
         @dg.asset(
             name=name,
             group_name=group,
-            code_version=code_version,
+            code_version=full,
             deps=[_dep(u, level) for u in upstream],
             kinds=set(kinds),
             description=description or (compute.__doc__ or "").strip().splitlines()[0],

@@ -19,6 +19,7 @@ from pipelines.defs.sensors import RANGE_END, RANGE_START
 from pipelines.launch import materialize_archive, register_landed_runs
 from pipelines.partitions import split_capture_key
 from pipelines.resources import LabArchive, ParquetStore
+from pipelines.stage import SOURCE_TAG
 from pipelines.storage import VersionedStore
 from prod_helpers import (SHM, TOY_STAGES, temp_instance, toy_definitions, toy_stages, tree_digest,
                           write_realistic_archive, write_small_archive)
@@ -111,7 +112,8 @@ def test_code_version_change_recomputes_that_stage_and_downstream_only(pristine_
             assert stale_set(plan) == expected
             assert {s.stage for s in plan.stale} - TOY_CHAIN == set()  # nothing else in the code location
             reasons = {(s.stage, s.key): s.reason for s in plan.stale}
-            assert reasons[("toy_capture_a", keys[0])] == "code version 1 -> 2"
+            reason = reasons[("toy_capture_a", keys[0])]  # declared version plus the source digest
+            assert reason.startswith(f"code version 1{SOURCE_TAG}") and f" -> 2{SOURCE_TAG}" in reason, reason
             assert reasons[("toy_capture_b", keys[0])].startswith("upstream changed: toy_capture_a/")
 
             # the weekly schedules: one batched capture run (all captures are contiguous) with only the stale
@@ -131,7 +133,7 @@ def test_code_version_change_recomputes_that_stage_and_downstream_only(pristine_
                 for s in ("ingested_run", "toy_side"):
                     assert vstore.versions(s, k) == [old[(s, k)]]
                 # audit: the old version is still there and readable
-                assert vstore.read_meta("toy_capture_a", k, old[("toy_capture_a", k)])["code_version"] == "1"
+                assert vstore.read_meta("toy_capture_a", k, old[("toy_capture_a", k)])["code_version"].split(SOURCE_TAG)[0] == "1"
                 assert not vstore.read("toy_capture_a", k, "means", old[("toy_capture_a", k)]).empty
             assert all(o == "rewritten" for _, o in reprocess.outcome(vstore, plan))
 
