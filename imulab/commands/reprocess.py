@@ -10,19 +10,15 @@ from pathlib import Path
 
 import click
 
+from imulab.commands import workspace_options
+
 
 def _short(v: str | None) -> str:
     return (v or "-")[:12]
 
 
 @click.command("reprocess")
-@click.option("--archive", "landing", type=click.Path(file_okay=False), default=None,
-              help="Landing folder of the lab archive (default: <data>/landing).")
-@click.option("--store", "store", type=click.Path(file_okay=False), default=None,
-              help="Versioned parquet outputs (default: <data>/store).")
-@click.option("--data-dir", default="imulab_data", show_default=True,
-              help="Working folder for the default archive, store and Dagster instance.")
-@click.option("--dagster-home", default=None, help="Dagster instance folder (default $DAGSTER_HOME or <data>/dagster_home).")
+@workspace_options("Landing folder of the lab archive (default: <data>/landing).")
 @click.option("--dry-run", is_flag=True, help="Only print what is stale and why.")
 @click.option("--retry-no-output", is_flag=True,
               help="Also request partitions whose stage produced no output at their current expected version.")

@@ -10,15 +10,11 @@ from pathlib import Path
 
 import click
 
+from imulab.commands import workspace_options
+
 
 @click.command("run")
-@click.option("--archive", "landing", type=click.Path(file_okay=False), default=None,
-              help="Landing folder of the lab archive. Default: imulab_data/landing, simulated first if empty.")
-@click.option("--store", "store", type=click.Path(file_okay=False), default=None,
-              help="Where versioned parquet outputs go. Default: <data>/store.")
-@click.option("--data-dir", default="imulab_data", show_default=True,
-              help="Working folder for the default archive, store and Dagster instance.")
-@click.option("--dagster-home", default=None, help="Dagster instance folder (default $DAGSTER_HOME or <data>/dagster_home).")
+@workspace_options("Landing folder of the lab archive. Default: <data>/landing, simulated first if empty.")
 @click.option("--verbose", is_flag=True, help="Show Dagster's event log.")
 def command(landing, store, data_dir, dagster_home, verbose):
     """Ingest and calibrate every completed run of a lab archive through Dagster, then print where outputs are.
