@@ -1,4 +1,4 @@
-"""Allan deviation benchmark: allantools.oadev vs imulab (assets_lib.allan), time and peak extra memory.
+"""Allan deviation benchmark: allantools.oadev vs imulab (assets_lib.noise.allan), time and peak extra memory.
 
 Every configuration runs in a fresh single-threaded subprocess (OPENBLAS/OMP/NUMBA threads = 1). Memory:
 the subprocess builds its input, resets the kernel's peak-RSS counter (/proc/self/clear_refs = 5), runs the
@@ -87,15 +87,15 @@ def warm(al, backend):
 if method in ('allantools', 'imulab', 'imulab_numpy'):
     y = make(n, 1)
     import allantools
-    from assets_lib import allan as al
+    from assets_lib.noise import allan as al
     if method != 'allantools':
         warm(al, 'numba' if method == 'imulab' else 'numpy')
 elif method == 'six':
     y = make(n, 1, channels=cfg['channels']).reshape(n, -1)
-    from assets_lib import allan as al
+    from assets_lib.noise import allan as al
     warm(al, 'auto')
 elif method == 'stream':
-    from assets_lib import allan as al
+    from assets_lib.noise import allan as al
     warm(al, 'auto')
     y = None
 gc.collect()
@@ -224,7 +224,7 @@ def main(argv=None):
         summary[taus] = s
     summary["six_channels_time_ratio"] = res[("six6", "dense")]["seconds_median"] / res[("six1", "dense")]["seconds_median"]
     doc = {
-        "what": "allantools.oadev vs imulab assets_lib.allan.oadev, single thread, fresh process per run",
+        "what": "allantools.oadev vs imulab assets_lib.noise.allan.oadev, single thread, fresh process per run",
         "n": n,
         "reps": args.reps,
         "machine": {"cpus": os.cpu_count(), "processor": platform.processor(), "python": platform.python_version(),

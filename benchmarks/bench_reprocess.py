@@ -41,7 +41,7 @@ GRADES = ("tactical", "navigation", "consumer")
 
 
 def simulate(landing: Path, devices: int, cycles: int, scale: float) -> list[str]:
-    from assets_lib.simulator import example_device, simulate_run, write_run
+    from assets_lib.sim.simulator import example_device, simulate_run, write_run
 
     keys = []
     for d in range(devices):

@@ -1,14 +1,14 @@
 """Monte Carlo coverage of the calibration fits' uncertainties (>= 200 full device calibrations).
 
-Each trial draws a new device (``assets_lib.simulator.example_device``, grades cycled), then runs the full chain
+Each trial draws a new device (``assets_lib.sim.simulator.example_device``, grades cycled), then runs the full chain
 
     simulate (raw counts, Allan noise incl. bias instability and rate random walk, saturation)
-    -> ingest (``raw_schemas.readers.ingest_frames``) -> segment (``assets_lib.segmentation.segment_run``)
+    -> ingest (``raw_schemas.readers.ingest_frames``) -> segment (``assets_lib.calibration.segmentation.segment_run``)
     -> fit (gyro rate fit, accelerometer 24-position fit, gyro static biases with earth rate removed)
 
 on the ``quick_rate`` and ``quick_24_position`` plans, and compares every observable coefficient with its truth:
 coverage of the reported 95 % interval (``ci95_low``..``ci95_high``: Student-t with the dof of the
-pooled sem/scatter variance factor, see assets_lib/fit_core.py), and z = (estimate - truth) / stderr. Acceptance: pooled coverage 94-96 %, no coefficient
+pooled sem/scatter variance factor, see assets_lib/calibration/fit_core.py), and z = (estimate - truth) / stderr. Acceptance: pooled coverage 94-96 %, no coefficient
 below 90 %, |mean z| < 0.2 for every coefficient.
 
 Truths: gyro rate-fit bias where g-sensitivity is not separable is b + G f_bar (the fit says so in its note);
@@ -36,8 +36,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-from assets_lib.multiposition import fit_accel_multiposition, fit_gyro_static  # noqa: E402
-from assets_lib.rate_fit import fit_gyro_rate  # noqa: E402
+from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static  # noqa: E402
+from assets_lib.calibration.rate_fit import fit_gyro_rate  # noqa: E402
 
 AX = "xyz"
 GRADES = ("navigation", "tactical", "consumer")
@@ -84,8 +84,8 @@ def _score(trial, grade, rf, af, gs, truth):
 
 
 def trial_chain(k: int) -> list[dict]:
-    from assets_lib.segmentation import segment_run
-    from assets_lib.simulator import example_device, simulate_run
+    from assets_lib.calibration.segmentation import segment_run
+    from assets_lib.sim.simulator import example_device, simulate_run
     from raw_schemas.readers import ingest_frames
 
     grade = GRADES[k % len(GRADES)]
@@ -157,7 +157,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     mode = args.mode
     if mode == "auto":
-        have = (REPO / "assets_lib" / "simulator.py").exists() and (REPO / "assets_lib" / "segmentation.py").exists()
+        have = (REPO / "assets_lib" / "sim" / "simulator.py").exists() and (REPO / "assets_lib" / "calibration" / "segmentation.py").exists()
         mode = "chain" if have else "direct"
     fn = trial_chain if mode == "chain" else trial_direct
     t0 = time.time()

@@ -1,4 +1,4 @@
-"""Monte Carlo of the IEEE 952 noise fit (assets_lib.noise_id) against the classic slope reads.
+"""Monte Carlo of the IEEE 952 noise fit (assets_lib.noise.identification) against the classic slope reads.
 
 Simulated gyro rate noise: white (ARW N) + flicker (bias instability B) + rate random walk (K), 3 h per trial,
 overlapping ADEV on 100 log-spaced taus, fit by iterated non-negative GLS. Reports per parameter: bias of the
@@ -26,9 +26,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from assets_lib import allan as al  # noqa: E402
-from assets_lib import noise_id as ni  # noqa: E402
-from assets_lib.noise import AllanParams, allan_noise  # noqa: E402
+from assets_lib.noise import allan as al  # noqa: E402
+from assets_lib.noise import identification as ni  # noqa: E402
+from assets_lib.sim.noise import AllanParams, allan_noise  # noqa: E402
 
 D2R = math.pi / 180.0
 #: a tactical MEMS gyro: ARW 0.07 deg/sqrt(h), BI 2 deg/h, RRW 14 deg/h/sqrt(h) (all three visible in 3 h)

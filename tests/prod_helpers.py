@@ -14,7 +14,7 @@ from pathlib import Path
 import dagster as dg
 import pandas as pd
 
-from assets_lib.simulator import example_device, simulate_run, write_run
+from assets_lib.sim.simulator import example_device, simulate_run, write_run
 from pipelines.partitions import capture_key
 from pipelines.stage import STAGES, StageOutput, stage
 

@@ -12,8 +12,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from assets_lib import allan as al
-from assets_lib import allan_ci
+from assets_lib.noise import allan as al
+from assets_lib.noise import intervals as allan_ci
 
 allantools = pytest.importorskip("allantools")
 

@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from assets_lib import allan as al
-from assets_lib.noise import AllanParams, allan_noise
+from assets_lib.noise import allan as al
+from assets_lib.sim.noise import AllanParams, allan_noise
 from imulab.cli import main
 
 D2R = math.pi / 180.0

@@ -1,4 +1,4 @@
-"""Fleet drift science (assets_lib.drift) on synthetic series with known truth.
+"""Fleet drift science (assets_lib.fleet.drift) on synthetic series with known truth.
 
 Monte Carlo sizes are the reduced versions (a few thousand trials); every rate is compared with its designed or
 analytical value through a binomial tolerance of 4 standard deviations, so a wrong formula fails while chance
@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from assets_lib.drift import (
+from assets_lib.fleet.drift import (
     analyze_series,
     cusum_false_alarm_probability,
     cusum_one_sided_arl,
@@ -24,7 +24,7 @@ from assets_lib.drift import (
     tabular_cusum,
     weighted_trend,
 )
-from assets_lib.repeatability import repeatability_table
+from assets_lib.calibration.repeatability import repeatability_table
 
 N_RUNS = 10
 T_DAYS = np.arange(N_RUNS) * 7.0  # weekly calibrations

@@ -14,7 +14,7 @@ import dagster as dg
 import pandas as pd
 import pytest
 
-from assets_lib.simulator import DEGPH, example_device, simulate_run, write_run
+from assets_lib.sim.simulator import DEGPH, example_device, simulate_run, write_run
 from pipelines.storage import VersionedStore
 
 DRIFTING, STABLE = "DRF-001", "STB-002"
@@ -146,7 +146,7 @@ def test_fleet_stage_skips_without_coefficients(tmp_path):
 
 
 def test_fleet_tables_have_their_columns(fleet):
-    from assets_lib.drift import POINT_COLUMNS, SERIES_COLUMNS, SUMMARY_COLUMNS
+    from assets_lib.fleet.drift import POINT_COLUMNS, SERIES_COLUMNS, SUMMARY_COLUMNS
 
     st = fleet["store"]
     assert list(st.read("fleet_drift", "fleet", "drift").columns) == SERIES_COLUMNS

@@ -18,8 +18,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from assets_lib.plans import build_plan
-from assets_lib.simulator import example_device, simulate_run, write_run
+from assets_lib.sim.plans import build_plan
+from assets_lib.sim.simulator import example_device, simulate_run, write_run
 from raw_schemas.errors import RawDataError
 from raw_schemas.manifest import IMU_CHANNELS
 from raw_schemas.readers import discover_runs, ingest_run

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from assets_lib.fit_report import COEFFICIENT_COLUMNS
-from assets_lib.means_fit import fit_tumble_means
-from assets_lib.multiposition import fit_accel_multiposition, fit_gyro_static
-from assets_lib.rate_fit import fit_gyro_rate
+from assets_lib.calibration.fit_report import COEFFICIENT_COLUMNS
+from assets_lib.calibration.means_fit import fit_tumble_means
+from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.rate_fit import fit_gyro_rate
 from seed001_data import PRINTED_HALF_UNIT, TUMBLE_PUBLISHED, tumble_table
 from synth_plateaus import (
     AX,

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from assets_lib import allan as al
-from assets_lib import noise_id as ni
-from assets_lib.allan_ci import edf_greenhall
-from assets_lib.noise import AllanParams, allan_noise
+from assets_lib.noise import allan as al
+from assets_lib.noise import identification as ni
+from assets_lib.noise.intervals import edf_greenhall
+from assets_lib.sim.noise import AllanParams, allan_noise
 
 D2R = math.pi / 180.0
 

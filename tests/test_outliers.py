@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom, norm
 
-from assets_lib.outliers import (
+from assets_lib.calibration.outliers import (
     MAD_TO_SIGMA,
     OutlierConfig,
     estimate_resolution,

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from assets_lib.fit_report import COEFFICIENT_COLUMNS, RESIDUAL_COLUMNS
-from assets_lib.means_fit import fit_rate_means
-from assets_lib.rate_fit import fit_gyro_rate
+from assets_lib.calibration.fit_report import COEFFICIENT_COLUMNS, RESIDUAL_COLUMNS
+from assets_lib.calibration.means_fit import fit_rate_means
+from assets_lib.calibration.rate_fit import fit_gyro_rate
 from seed001_data import GYRO_PUBLISHED, PRINTED_HALF_UNIT, gyro_table, gyro_table_from_printed_layout
 from synth_plateaus import AX, build_table, random_truth, rate_steps
 

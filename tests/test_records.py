@@ -17,8 +17,8 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 
-from assets_lib.simulator import example_device, simulate_run, write_run
-from imulab.records import (
+from assets_lib.sim.simulator import example_device, simulate_run, write_run
+from assets_lib.records import (
     SCHEMA_PATH,
     StoreView,
     build_device_records,

@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from assets_lib.rate_fit import fit_gyro_rate
-from assets_lib.repeatability import (
+from assets_lib.calibration.rate_fit import fit_gyro_rate
+from assets_lib.calibration.repeatability import (
     REPEATABILITY_COLUMNS,
     bias_repeatability,
     repeatability_table,

@@ -13,10 +13,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from assets_lib.earth import site_gravity_mps2
-from assets_lib.noise import AllanParams, allan_noise
-from assets_lib.outliers import reject_outliers_window
-from assets_lib.segmentation import (
+from assets_lib.sim.earth import site_gravity_mps2
+from assets_lib.sim.noise import AllanParams, allan_noise
+from assets_lib.calibration.outliers import reject_outliers_window
+from assets_lib.calibration.segmentation import (
     CHANNELS,
     DetectorConfig,
     PooledAllanFit,
@@ -30,7 +30,7 @@ from assets_lib.segmentation import (
     segment_run,
     whole_revolution_window,
 )
-from assets_lib.simulator import UG, example_device, simulate_run
+from assets_lib.sim.simulator import UG, example_device, simulate_run
 from raw_schemas.readers import ingest_frames
 
 FS = 100.0

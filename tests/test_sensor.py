@@ -23,7 +23,7 @@ from pipelines.partitions import captures, devices
 from pipelines.resources import LabArchive
 from prod_helpers import (DEVICES, QUIET, SHM, apply_partition_requests, small_run, temp_instance, toy_definitions,
                           toy_stages, write_small_archive)
-from assets_lib.simulator import write_run
+from assets_lib.sim.simulator import write_run
 
 warnings.filterwarnings("ignore")
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from assets_lib.earth import normal_gravity_mps2
-from assets_lib.noise import AllanParams, allan_noise
-from assets_lib.plans import build_plan
-from assets_lib.simulator import (
+from assets_lib.sim.earth import normal_gravity_mps2
+from assets_lib.sim.noise import AllanParams, allan_noise
+from assets_lib.sim.plans import build_plan
+from assets_lib.sim.simulator import (
     ArchiveSpec,
     DeviceTruth,
     ErrorModel,

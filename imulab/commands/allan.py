@@ -17,8 +17,8 @@ import click
 import numpy as np
 import pandas as pd
 
-from assets_lib import allan as al
-from assets_lib import noise_id as ni
+from assets_lib.noise import allan as al
+from assets_lib.noise import identification as ni
 from raw_schemas.units import ACCEL_UNITS_TO_MPS2, GYRO_UNITS_TO_RADPS
 
 TIME_COLUMNS = ("time_s", "time", "t", "timestamp", "t_s")

@@ -15,7 +15,7 @@ import click
 import numpy as np
 import pandas as pd
 
-from assets_lib.means_fit import ANGLE_UNITS_TO_RAD, EXCLUSION_MODES, MeansFit, fit_rate_means, fit_tumble_means
+from assets_lib.calibration.means_fit import ANGLE_UNITS_TO_RAD, EXCLUSION_MODES, MeansFit, fit_rate_means, fit_tumble_means
 from raw_schemas.units import GYRO_UNITS_TO_RADPS
 
 

@@ -27,7 +27,7 @@ def command(landing, store, data_dir, dagster_home, verbose):
     if landing is None:
         landing = data / "landing"
         if not landing.is_dir() or not any(p for p in landing.iterdir() if not p.name.startswith("_")):
-            from assets_lib.simulator import ArchiveSpec, write_archive
+            from assets_lib.sim.simulator import ArchiveSpec, write_archive
 
             t0 = time.time()
             n = len(write_archive(landing, ArchiveSpec()))

@@ -22,8 +22,8 @@ def command(out_dir, power_cycles, static_duration_s, rate_plan, position_plan, 
     """Write a simulated lab archive: three devices (navigation FOG, tactical MEMS, consumer MEMS), each with
     power-cycled rate and 24-position runs, a long static record and a 12-position tumble, in the raw-log
     contract (manifest.json, imu.csv|parquet, table log, _COMPLETE). The truth goes to <out>/_truth/."""
-    from assets_lib.plans import available_plans
-    from assets_lib.simulator import ArchiveSpec, write_archive
+    from assets_lib.sim.plans import available_plans
+    from assets_lib.sim.simulator import ArchiveSpec, write_archive
 
     for p in (rate_plan, position_plan):
         if p not in available_plans():

@@ -1,11 +1,11 @@
 """``imulab verify RECORD``: recompute a calibration record from the raw archive and check it and its hash chain.
 
 For the record and (unless ``--shallow``) every earlier record of the same device:
-1. the record validates against ``imulab/record.schema.json`` and its ``record_sha256`` is the hash of its content;
+1. the record validates against ``raw_schemas/record.schema.json`` and its ``record_sha256`` is the hash of its content;
 2. every raw file of the run folder is re-hashed and compared with the recorded sha256 (changed, missing, extra);
 3. ingestion and the fits are re-run from the raw folder through the stages' own pure compute functions
    (``pipelines.stage.STAGES``), into a temporary VersionedStore (never the production store), and the record's
-   content is rebuilt from it with the same code that built it (``imulab.records.run_content``); every coefficient
+   content is rebuilt from it with the same code that built it (``assets_lib.records.run_content``); every coefficient
    (value, stderr and lab values to a relative tolerance of 1e-9 of max(|value|, stderr): far above float
    round-off from a different BLAS or summation order, far below any real change), unit, test condition, stage
    version and noise term must match;
@@ -22,7 +22,7 @@ from pathlib import Path
 
 import click
 
-from imulab.records import (
+from assets_lib.records import (
     FLOAT_RTOL,
     SCHEMA_PATH,
     StoreView,

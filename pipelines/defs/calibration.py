@@ -5,11 +5,11 @@ import dagster as dg
 import numpy as np
 import pandas as pd
 
-from assets_lib.fit_report import plot_multiposition_residuals_png, plot_rate_residuals_png
-from assets_lib.grades import implausible
-from assets_lib.multiposition import fit_accel_multiposition, fit_gyro_static
-from assets_lib.rate_fit import fit_gyro_rate
-from assets_lib.segmentation import plot_segmentation_png, segment_run
+from assets_lib.calibration.fit_report import plot_multiposition_residuals_png, plot_rate_residuals_png
+from assets_lib.calibration.grades import implausible
+from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.rate_fit import fit_gyro_rate
+from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
 from pipelines.partitions import captures
 from pipelines.resources import ParquetStore
 from pipelines.stage import StageInputs, StageOutput, stage
@@ -149,7 +149,7 @@ def _chi2_check(asset: str):
 
 def _plausible_check(asset: str):
     @dg.asset_check(asset=asset, name="coefficients_plausible_for_grade", partitions_def=captures,
-                    description="Bias, scale factor and misalignment inside the device grade's envelope (assets_lib.grades).")
+                    description="Bias, scale factor and misalignment inside the device grade's envelope (assets_lib.calibration.grades).")
     def _check(context: dg.AssetCheckExecutionContext, store: ParquetStore) -> dg.AssetCheckResult:
         st = store.store
         bad = []

@@ -1,5 +1,5 @@
 """Stage ``fleet_drift``: every device's calibration coefficients over time, with control limits from the device's
-repeatability, drift and abrupt-shift flags (assets_lib.drift), a fleet summary and one control chart per
+repeatability, drift and abrupt-shift flags (assets_lib.fleet.drift), a fleet summary and one control chart per
 coefficient family; two non-blocking checks surface the warnings.
 
 Upstreams are the fits and the repeatability stage when their modules exist (``pipelines.defs.calibration``,
@@ -14,7 +14,7 @@ import importlib.util
 import dagster as dg
 import pandas as pd
 
-from assets_lib.drift import DriftConfig, fleet_drift
+from assets_lib.fleet.drift import DriftConfig, fleet_drift
 from pipelines.resources import ParquetStore
 from pipelines.stage import FLEET_KEY, STAGES, StageInputs, StageOutput, stage
 

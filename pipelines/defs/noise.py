@@ -5,8 +5,8 @@ import dagster as dg
 import numpy as np
 import pandas as pd
 
-from assets_lib.allan import allan_deviations
-from assets_lib.noise_id import fit_all, noise_table, plot_allan
+from assets_lib.noise.allan import allan_deviations
+from assets_lib.noise.identification import fit_all, noise_table, plot_allan
 from pipelines.partitions import captures
 from pipelines.resources import ParquetStore
 from pipelines.stage import StageInputs, StageOutput, stage

@@ -1,10 +1,10 @@
 """Stage ``calibration_record``: per device, one audited, hash-chained JSON record and one HTML certificate per
-captured run (``imulab.records``), plus ``records.parquet`` (run_id, start_time_utc, record_sha256,
+captured run (``assets_lib.records``), plus ``records.parquet`` (run_id, start_time_utc, record_sha256,
 prev_record_sha256, ...). A blocking check verifies the chain after every materialization.
 
 Records whose certified content is unchanged are reused verbatim from the device's current version (creation
 time, Dagster run id and bytes kept), so a rerun changes nothing and a new run appends one link
-(imulab/records.py explains the hashing).
+(assets_lib/records/__init__.py explains the hashing).
 """
 
 
@@ -13,7 +13,7 @@ import importlib.util
 
 import dagster as dg
 
-from imulab.records import (
+from assets_lib.records import (
     PLOT_SOURCES,
     StoreView,
     build_device_records,

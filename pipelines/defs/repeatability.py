@@ -3,7 +3,7 @@
 
 import pandas as pd
 
-from assets_lib.repeatability import repeatability_table
+from assets_lib.calibration.repeatability import repeatability_table
 from pipelines.stage import StageInputs, StageOutput, stage
 
 

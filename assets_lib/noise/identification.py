@@ -30,8 +30,8 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
-from assets_lib.allan import AllanResult
-from assets_lib.allan_ci import edf_greenhall
+from assets_lib.noise.allan import AllanResult
+from assets_lib.noise.intervals import edf_greenhall
 
 LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
 TERMS = ("Q", "N", "B", "K", "R")
@@ -443,7 +443,7 @@ def slope_reads(res: AllanResult, *, sensor: str | None = None, ci_level: float 
     out = []
     if len(tau) < 3:
         return out
-    from assets_lib.allan_ci import chi2_interval
+    from assets_lib.noise.intervals import chi2_interval
 
     lo_all, hi_all = chi2_interval(dev, edf, ci_level)
     slope = np.gradient(np.log(dev), np.log(tau))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from assets_lib.earth import earth_rate_level, specific_force_level
+from assets_lib.sim.earth import earth_rate_level, specific_force_level
 
 _SAME_MOUNT_TOL_RAD = 1e-6
 #: deceleration of the table after the last step [rad/s^2]

@@ -13,7 +13,7 @@ from importlib import resources
 
 import numpy as np
 
-from assets_lib.kinematics import consistent_plan_orientations, rotation_about
+from assets_lib.sim.kinematics import consistent_plan_orientations, rotation_about
 from raw_schemas.manifest import TestPlan
 
 _LEVEL_AXES = {
@@ -25,13 +25,13 @@ _BODY = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 def available_plans() -> list[str]:
     """Names of the plans in the library."""
-    files = resources.files("assets_lib").joinpath("plan_library").iterdir()
+    files = resources.files("assets_lib.sim").joinpath("plan_library").iterdir()
     return sorted(f.name[:-5] for f in files if f.name.endswith(".json"))
 
 
 def load_template(name: str) -> dict:
     """The raw JSON template of a library plan."""
-    path = resources.files("assets_lib").joinpath("plan_library", f"{name}.json")
+    path = resources.files("assets_lib.sim").joinpath("plan_library", f"{name}.json")
     if not path.is_file():
         raise KeyError(f"unknown plan {name!r}; available: {available_plans()}")
     return json.loads(path.read_text())

@@ -7,7 +7,7 @@ time): x_i = mu + beta t_i + e_i, e_i ~ N(0, sigma_i^2) independent, with
 
 where se_i is the run's own standard error (the fit's ``stderr``) and sigma_turnon the device's turn-on to
 turn-on scatter, i.e. the noise-corrected bias / scale-factor repeatability (seed 000 eq. 23, GJB 2426A B_r,
-``assets_lib.repeatability``: sqrt(max(0, s^2 - rms(se)^2))). A run estimate scatters about the device's mean
+``assets_lib.calibration.repeatability``: sqrt(max(0, s^2 - rms(se)^2))). A run estimate scatters about the device's mean
 by both, independently, so their variances add. This is never smaller than the larger of the repeatability
 standard deviation and the run's stderr, the usual rule of thumb for control limits (it is the quadrature form of
 that rule: sqrt(s_r^2 + se^2) >= max(s_r, se)); taking the larger of the two alone would understate sigma by up
@@ -73,7 +73,7 @@ from scipy import stats
 SERIES_KEYS = ("device_id", "sensor", "axis", "coefficient", "method")
 #: coefficients analyzed by default: the ones whose turn-on repeatability the pipeline measures
 DEFAULT_COEFFICIENTS = ("bias", "scale_factor")
-#: repeatability table coefficient -> coefficient it describes (assets_lib.repeatability)
+#: repeatability table coefficient -> coefficient it describes (assets_lib.calibration.repeatability)
 REPEATABILITY_OF = {"bias_repeatability": "bias", "scale_factor_repeatability": "scale_factor"}
 RELATIVE_REPEATABILITY = {"scale_factor_repeatability"}
 
@@ -410,7 +410,7 @@ def analyze_series(t_days, values, stderrs, *, sigma_turnon: float | None = None
 # The fleet
 # ---------------------------------------------------------------------------------------------------------------
 def turn_on_sigma_table(repeatability: pd.DataFrame | None) -> pd.DataFrame:
-    """Repeatability table (assets_lib.repeatability) -> turn-on sigma per (device, sensor, axis, coefficient, method).
+    """Repeatability table (assets_lib.calibration.repeatability) -> turn-on sigma per (device, sensor, axis, coefficient, method).
 
     Columns out: the series keys, ``sigma_turnon`` (noise-corrected repeatability, relative for scale factors when
     ``relative``), ``relative`` (bool), ``repeatability`` (the plain sample std), ``n_runs``.
@@ -621,7 +621,7 @@ def fleet_drift(coefficients: pd.DataFrame, run_times: pd.DataFrame, repeatabili
     """Every (device, sensor, axis, coefficient, method) series of a COEFFICIENT TABLE, ordered by run start time.
 
     ``run_times``: columns device_id, run_id, start_time_utc (ISO 8601 UTC). ``repeatability``: the repeatability
-    stage's table (assets_lib.repeatability.REPEATABILITY_COLUMNS) or None.
+    stage's table (assets_lib.calibration.repeatability.REPEATABILITY_COLUMNS) or None.
     """
     c = coefficients
     if "observable" in c:

@@ -5,7 +5,7 @@ gyro axis i, with ``omega`` the reference input ``omega_ref_{x,y,z}_radps`` (tab
 rate). It is linear in a_ii = K_i, a_ij = K_i E_ij and b_i, and is fitted per axis by weighted least squares
 over the plateaus (seed 003 eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
 method. Misalignment is observable only when the plateaus excite the other axes (rate tests about all three
-body axes, seed 000 eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.fit_core` for the
+body axes, seed 000 eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
 identifiability rule, the exclusion tests and the covariance policy.
 
 Also: scale-factor nonlinearity (seed 003: max deviation from the fitted line over the full-scale output),
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from assets_lib.earth import EARTH_RATE_RADPS
-from assets_lib.fit_core import (
+from assets_lib.sim.earth import EARTH_RATE_RADPS
+from assets_lib.calibration.fit_core import (
     DEFAULT_ALPHA,
     DEFAULT_REL_TOL,
     LinearFit,
@@ -35,7 +35,7 @@ from assets_lib.fit_core import (
     off_diagonal_matrix,
     ratio_with_stderr,
 )
-from assets_lib.fit_report import (
+from assets_lib.calibration.fit_report import (
     RADPS_TO_DEGPS,
     coefficient_frame,
     coefficient_row,

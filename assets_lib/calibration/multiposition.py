@@ -9,7 +9,7 @@ built from each plateau's reference specific force, so one function serves seed 
 seed 000's 8-position-per-axis plan, seed 001's 12-position tumble (K0..K3 = b, K, K2, Kc), a 6-position
 plan, or any other schedule. What the schedule cannot observe (e.g. Kc in a 6-position plan, K2 without a
 horizontal position) is reported ``observable=False`` with a NaN value and the reason, by the prescribed-pivot
-QR of :mod:`assets_lib.fit_core`.
+QR of :mod:`assets_lib.calibration.fit_core`.
 
 Gyro biases from the static plateaus (seed 000 eq. 17-20): z_i = y_i - [K_i (e_i + E_i)] . omega_ref, the
 earth-rate projection removed with the rate fit's scale factor and misalignment (or nominal 1 and 0), then
@@ -17,7 +17,7 @@ z_i = b_i [+ G_i . f] by WLS; the rate fit's covariance is propagated into the b
 fitted when the schedule observes it (``g_sensitivity='auto'``).
 
 With plateau times in the table, both fits model the bias-instability (1/f) noise shared between plateaus by
-REML/GLS (``correlated_noise=True``, :func:`assets_lib.fit_core.flicker_gls`); ``drift_order`` adds an optional
+REML/GLS (``correlated_noise=True``, :func:`assets_lib.calibration.fit_core.flicker_gls`); ``drift_order`` adds an optional
 polynomial bias drift over the run as nuisance columns.
 """
 
@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from assets_lib.fit_core import (
+from assets_lib.calibration.fit_core import (
     DEFAULT_ALPHA,
     DEFAULT_REL_TOL,
     LinearFit,
@@ -36,8 +36,8 @@ from assets_lib.fit_core import (
     off_diagonal_matrix,
     ratio_with_stderr,
 )
-from assets_lib.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
-from assets_lib.rate_fit import AXES, GyroRateFit, select_rows
+from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
+from assets_lib.calibration.rate_fit import AXES, GyroRateFit, select_rows
 
 METHOD_ACCEL = "wls_multiposition"
 METHOD_GYRO = "wls_static_bias_earth_rate_removed"

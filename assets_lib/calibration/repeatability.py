@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from assets_lib.fit_report import units_of
+from assets_lib.calibration.fit_report import units_of
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ Tumble (seed 001 eq. 4-7): U = K0 + K1 sin(theta) + K2 sin^2(theta) + K3 sin(the
 a_i = sin(theta) g and the cross input a_o = cos(theta) g; optionally the IEEE 1293 misalignment term
 delta_o cos(theta). Coefficients in the lab's output unit (V, counts, ...) per g and per g^2.
 
-Both use the same engine (:func:`assets_lib.fit_core.fit_linear`) as the plateau-table fits: identifiability,
+Both use the same engine (:func:`assets_lib.calibration.fit_core.fit_linear`) as the plateau-table fits: identifiability,
 Bonferroni-tested exclusions with reasons, and the covariance policy described there. Inputs are converted to
 SI (rad/s, rad) inside; coefficients are reported in the lab's units at the edge.
 """
@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from assets_lib.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, detect_saturation, fit_linear, ratio_with_stderr
-from assets_lib.rate_fit import compression_note, sweep_asymmetry, sweep_nonlinearity, sweep_screen_columns
+from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, detect_saturation, fit_linear, ratio_with_stderr
+from assets_lib.calibration.rate_fit import compression_note, sweep_asymmetry, sweep_nonlinearity, sweep_screen_columns
 from raw_schemas.units import GYRO_UNITS_TO_RADPS
 
 ANGLE_UNITS_TO_RAD = {"deg": math.pi / 180.0, "rad": 1.0}

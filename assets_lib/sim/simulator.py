@@ -19,10 +19,10 @@ from typing import Protocol
 import numpy as np
 import pandas as pd
 
-from assets_lib.earth import normal_gravity_mps2
-from assets_lib.kinematics import BodyInputs, body_inputs
-from assets_lib.noise import AllanParams, allan_noise
-from assets_lib.plans import build_plan
+from assets_lib.sim.earth import normal_gravity_mps2
+from assets_lib.sim.kinematics import BodyInputs, body_inputs
+from assets_lib.sim.noise import AllanParams, allan_noise
+from assets_lib.sim.plans import build_plan
 from raw_schemas.manifest import SCHEMA_VERSION, Manifest, TestPlan
 from raw_schemas.units import si_factor
 
@@ -407,7 +407,7 @@ def simulate_run(
 
 
 def _template_kind(name: str) -> str:
-    from assets_lib.plans import load_template
+    from assets_lib.sim.plans import load_template
 
     return load_template(name)["test_kind"]
 

@@ -14,7 +14,7 @@ Two ways to find the plateaus of a plan (``raw_schemas.TestPlan``; plan times ar
 
 Every window is trimmed by the step's ``settle_s`` plus a guard, and a rate plateau is cut to a whole number of
 table revolutions where it is long enough (seed 000's full-revolution method: the horizontal earth rate, table
-ripple, wobble and tilt sinusoids average out). Outliers are rejected with ``assets_lib.outliers`` (seed 001).
+ripple, wobble and tilt sinusoids average out). Outliers are rejected with ``assets_lib.calibration.outliers`` (seed 001).
 Reference inputs are averaged over exactly the kept samples (``kinematics.body_inputs``).
 
 Standard error of a plateau mean (correlated noise). The SEM reported for a window of length T is the square
@@ -46,9 +46,9 @@ from scipy import signal
 from scipy.ndimage import uniform_filter1d
 from scipy.optimize import nnls
 
-from assets_lib.earth import site_gravity_mps2
-from assets_lib.kinematics import body_inputs, trajectory
-from assets_lib.outliers import MAD_TO_SIGMA, OutlierConfig, estimate_resolution, reject_outliers_window
+from assets_lib.sim.earth import site_gravity_mps2
+from assets_lib.sim.kinematics import body_inputs, trajectory
+from assets_lib.calibration.outliers import MAD_TO_SIGMA, OutlierConfig, estimate_resolution, reject_outliers_window
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
 
 CHANNELS = GYRO_COLUMNS + ACCEL_COLUMNS
@@ -297,7 +297,7 @@ def mean_difference_variance(fit: PooledAllanFit, k: int, t_a: float, c_a: float
                              rate_hz: float, n_grid: int = 4000) -> float:
     """Var(ybar_A - ybar_R) of two window means (lengths t_a, t_r, centres c_a, c_r) under the model of window k.
 
-    IEEE Std 952-1997 Annex C two-sided rate PSDs (as ``assets_lib.noise``): white N^2, flicker B^2/(2 pi f),
+    IEEE Std 952-1997 Annex C two-sided rate PSDs (as ``assets_lib.sim.noise``): white N^2, flicker B^2/(2 pi f),
     random walk K^2/(2 pi f)^2; Var = int S(f) |H_A - H_R|^2 df. White part in closed form N^2 (1/T_A - 1/T_R)
     (A inside R), quantization as its Allan value 3 Q^2 / T_A^2. For a fit that wants the covariance of plateau
     means (e.g. each plateau against the run mean, or two distant plateaus) rather than the local SEM.

@@ -1,6 +1,6 @@
 """Audited calibration records: one JSON record per device and run, hash-chained per device, with an HTML certificate.
 
-Record (``record_schema_version`` 1.0, JSON Schema in ``imulab/record.schema.json``)::
+Record (``record_schema_version`` 1.0, JSON Schema in ``raw_schemas/record.schema.json``)::
 
     {"record_schema_version": "1.0",
      "record_sha256": sha256(canonical_json(content)),
@@ -49,7 +49,7 @@ import numpy as np
 import pandas as pd
 
 RECORD_SCHEMA_VERSION = "1.0"
-SCHEMA_PATH = Path(__file__).with_name("record.schema.json")
+SCHEMA_PATH = Path(__file__).resolve().parents[2] / "raw_schemas" / "record.schema.json"
 COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit")
 NOISE_SOURCES = ("allan_deviation",)
 PLOT_SOURCES = (*COEFFICIENT_SOURCES, *NOISE_SOURCES)
@@ -118,9 +118,13 @@ def load_record(path: str | Path) -> dict:
 def software_info(source_dir: str | None = None) -> dict:
     """imulab version, ``git rev-parse HEAD`` of the source tree ('unknown' without git) and whether it was dirty
     (tracked files modified; untracked files ignored). Not cached: a long-lived code server sees new commits."""
-    from imulab import __version__
+    from importlib.metadata import PackageNotFoundError, version
 
-    src = Path(source_dir) if source_dir else Path(__file__).resolve().parents[1]
+    try:
+        __version__ = version("imulab")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree that was never installed
+        __version__ = "unknown"
+    src = Path(source_dir) if source_dir else Path(__file__).resolve().parents[2]
     commit, dirty = "unknown", None
     try:
         out = subprocess.run(["git", "-C", str(src), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
@@ -211,7 +215,7 @@ def _noise_rows(view: StoreView, key: str) -> list[dict]:
 
 def run_content(view: StoreView, key: str, prev_record_sha256: str | None, software: dict) -> dict:
     """The certified content of the record of capture ``key`` (the ``content`` block; see the module docstring)."""
-    from assets_lib.earth import site_gravity_mps2
+    from assets_lib.sim.earth import site_gravity_mps2
     from raw_schemas.manifest import Manifest
 
     ing = view.meta("ingested_run", key)

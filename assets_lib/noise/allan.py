@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from assets_lib.allan_ci import ONE_SIGMA_CI, acf_noise_id, chi2_interval, edf_for_kind
+from assets_lib.noise.intervals import ONE_SIGMA_CI, acf_noise_id, chi2_interval, edf_for_kind
 
 try:  # optional accelerator: results are the same estimator; see module docstring
     import numba as _numba

@@ -1,0 +1,1 @@
+"""Fleet: coefficient drift across devices and time (trend, control limits, CUSUM)."""
