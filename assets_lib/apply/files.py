@@ -172,3 +172,22 @@ def apply_file(cal: Calibration, data_path, out, *, manifest=None, device: str |
         warnings.append("not calibrated (nominal model kept): " + ", ".join(g for g in cal.missing_groups if g != "noise"))
     meta = calibration_metadata(cal, data, warnings, imulab_version)
     return write_calibrated(out, correct_frame(cal, data.imu), meta), meta
+
+
+def write_json_atomic(out: str | Path, obj: dict) -> Path:
+    """JSON (indented, sorted keys) written to a temp file and moved into place."""
+    return write_text_atomic(out, json.dumps(obj, indent=1, sort_keys=True, allow_nan=False) + "\n")
+
+
+def write_text_atomic(out: str | Path, text: str) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out
