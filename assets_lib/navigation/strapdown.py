@@ -53,6 +53,22 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * k + b * (k @ k)
 
 
+def _exp_small(phi: np.ndarray) -> np.ndarray:
+    """Exp of rotation vectors below 1e-3 rad (navigation-frame rates x dt): I + K + K^2/2, error < |phi|^3 / 6."""
+    kx = np.zeros((phi.shape[0], 3, 3))
+    kx[:, 0, 1], kx[:, 0, 2], kx[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    kx[:, 1, 0], kx[:, 2, 0], kx[:, 2, 1] = phi[:, 2], -phi[:, 1], phi[:, 0]
+    return np.eye(3) + kx + 0.5 * (kx @ kx)
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def attitude_error_rad(c_est: np.ndarray, c_true: np.ndarray) -> np.ndarray:
     """Rotation vector phi (nav frame, ENU: [east tilt, north tilt, heading]) with C_est = Exp(-phi) C_true, i.e.
     C_est = (I - phi x) C_true for small angles; exact (log map) for any size."""
@@ -107,26 +123,36 @@ def strapdown(dt_s, omega_b_radps: np.ndarray, f_b_mps2: np.ndarray, c_b2n0: np.
 
     if 0 in want:
         record()
-    for i in range(n):
-        dt_s = dts[i]
-        wi = w[:, i] if w.shape[1] > 1 else w[:, 0]
-        fi = f[:, i] if f.shape[1] > 1 else f[:, 0]
-        rm, rn = radii_m(lat)
-        w_ie = EARTH_RATE_RADPS * np.stack([np.zeros(k), np.cos(lat), np.sin(lat)], -1)
-        w_en = np.stack([-v[:, 1] / (rm + height_m), v[:, 0] / (rn + height_m),
-                         v[:, 0] * np.tan(lat) / (rn + height_m)], -1)
-        rot_b = exp_so3(np.broadcast_to(wi * dt_s, (k, 3)))
-        rot_n_half = exp_so3(-0.5 * (w_ie + w_en) * dt_s)
-        c_mid = rot_n_half @ c @ exp_so3(np.broadcast_to(0.5 * wi * dt_s, (k, 3)))
-        acc = np.einsum("kij,kj->ki", c_mid, np.broadcast_to(fi, (k, 3))) - np.cross(2 * w_ie + w_en, v)
-        acc[:, 2] -= g_site  # normal gravity of the site (its change over a few km of drift is < 1e-6 g)
-        v_old = v
-        v = v + dt_s * acc
-        v[:, 2] = 0.0  # height aided
-        lat = lat + dt_s * 0.5 * (v_old[:, 1] + v[:, 1]) / (rm + height_m)
-        lon = lon + dt_s * 0.5 * (v_old[:, 0] + v[:, 0]) / ((rn + height_m) * np.cos(lat))
-        c = rot_n_half @ rot_n_half @ c @ rot_b
-        if i + 1 in want:
-            record()
+    chunk = 512
+    for start in range(0, n, chunk):
+        stop = min(n, start + chunk)
+        idx = np.arange(start, stop)
+        # body-side factors of every step of the chunk at once: Exp(w dt) and the half-step-rotated force
+        wc = np.broadcast_to(w[:, idx] if w.shape[1] > 1 else w[:, :1], (k, len(idx), 3))
+        fc = np.broadcast_to(f[:, idx] if f.shape[1] > 1 else f[:, :1], (k, len(idx), 3))
+        dtc = dts[idx][None, :, None]
+        rot_b_all = exp_so3(wc * dtc)
+        f_half_all = np.einsum("knij,knj->kni", exp_so3(0.5 * wc * dtc), fc)
+        for j, i in enumerate(idx):
+            dt_s = dts[i]
+            rm, rn = radii_m(lat)
+            w_ie = np.zeros((k, 3))
+            w_ie[:, 1], w_ie[:, 2] = EARTH_RATE_RADPS * np.cos(lat), EARTH_RATE_RADPS * np.sin(lat)
+            w_en = np.empty((k, 3))
+            w_en[:, 0] = -v[:, 1] / (rm + height_m)
+            w_en[:, 1] = v[:, 0] / (rn + height_m)
+            w_en[:, 2] = v[:, 0] * np.tan(lat) / (rn + height_m)
+            rot_n_half = _exp_small(-0.5 * (w_ie + w_en) * dt_s)
+            f_n = (rot_n_half @ (c @ f_half_all[:, j, :, None]))[..., 0]
+            acc = f_n - _cross(2 * w_ie + w_en, v)
+            acc[:, 2] -= g_site  # normal gravity of the site (its change over a few km of drift is < 1e-6 g)
+            v_old = v
+            v = v + dt_s * acc
+            v[:, 2] = 0.0  # height aided
+            lat = lat + dt_s * 0.5 * (v_old[:, 1] + v[:, 1]) / (rm + height_m)
+            lon = lon + dt_s * 0.5 * (v_old[:, 0] + v[:, 0]) / ((rn + height_m) * np.cos(lat))
+            c = rot_n_half @ rot_n_half @ c @ rot_b_all[:, j]
+            if i + 1 in want:
+                record()
     t = np.concatenate([[0.0], np.cumsum(dts)])[out_steps]
     return NavSolution(t, np.stack(pos, 1), np.stack(vel, 1), np.stack(att, 1))
