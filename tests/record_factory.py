@@ -13,7 +13,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import segment_run
 from assets_lib.sim.simulator import SiteSpec, simulate_run

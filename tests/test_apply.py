@@ -11,9 +11,21 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from assets_lib.apply import assemble, calibration_from_record, correct, correct_frame, correction_stderr, forward
+from assets_lib.apply import (
+    assemble,
+    calibration_from_record,
+    correct,
+    correct_frame,
+    correction_stderr,
+    forward,
+)
 from assets_lib.apply.files import read_calibration_metadata
-from assets_lib.apply.model import Calibration, CalibrationError, Triad, calibration_from_json
+from assets_lib.apply.model import (
+    Calibration,
+    CalibrationError,
+    Triad,
+    calibration_from_json,
+)
 from assets_lib.sim.simulator import example_device, simulate_run, write_run
 from imulab.cli import main
 from raw_schemas.readers import ingest_run
@@ -36,7 +48,7 @@ def device():
 
 def test_correct_inverts_the_model_with_every_term():
     rng = np.random.default_rng(3)
-    tri = lambda: Triad(1 + 1e-3 * rng.standard_normal(3), 1e-3 * (rng.standard_normal((3, 3)) * (1 - np.eye(3))),  # noqa: E731
+    tri = lambda: Triad(1 + 1e-3 * rng.standard_normal(3), 1e-3 * (rng.standard_normal((3, 3)) * (1 - np.eye(3))),
                         1e-2 * rng.standard_normal(3), np.zeros(3), np.zeros((3, 3)), np.zeros(3))
     g, a = tri(), tri()
     g = Triad(**{**g.__dict__, "g_sensitivity": 1e-4 * rng.standard_normal((3, 3))})
@@ -89,7 +101,7 @@ def test_assemble_takes_each_group_from_the_newest_record_holding_it(device):
     recs = device["records"] + [rate2]
     before = assemble(recs, T0 + timedelta(days=3))
     after = assemble(recs, T0 + timedelta(days=8))
-    src = lambda cal: {t.group: t.run_id for t in cal.terms}  # noqa: E731
+    src = lambda cal: {t.group: t.run_id for t in cal.terms}
     assert src(before) == {"gyro_scale_misalignment": "a-rate", "gyro_bias_g": "a-pos24", "accel": "a-pos24"}
     assert src(after) == {"gyro_scale_misalignment": "c-rate", "gyro_bias_g": "a-pos24", "accel": "a-pos24"}
     assert after.missing_groups == ("noise",)

@@ -17,12 +17,17 @@ import yaml
 from click.testing import CliRunner
 
 from assets_lib.apply import assemble, correct, forward
-from assets_lib.apply.model import CalibrationError, calibration_from_record
+from assets_lib.apply.model import CalibrationError
 from assets_lib.noise.allan import oadev
 from assets_lib.records.export import export, openvins_intrinsics
 from assets_lib.sim.simulator import example_device
 from imulab.cli import main
-from tests.record_factory import T0, fitted_record, make_record, noise_rows, write_store_records
+from tests.record_factory import (
+    T0,
+    fitted_record,
+    make_record,
+    noise_rows,
+)
 
 N_G, K_G, N_A, K_A_UB = 2.5e-4, 3e-6, 5e-4, 4e-5
 

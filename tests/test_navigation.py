@@ -138,3 +138,13 @@ def test_certificate_fragment(budget):
     assert "cannot find north" in frag
     png = base64.b64decode(re.search(r"base64,([A-Za-z0-9+/=]+)'", frag).group(1))
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_certificate_section_uses_the_device_calibration_at_the_record(budget):
+    truth = example_device("TAC-N01", "tactical", 5).for_power_cycle(0, 5)
+    rate, _, _ = fitted_record(truth, "quick_rate", "a-rate", 1, T0)
+    pos, _, _ = fitted_record(truth, "quick_24_position", "a-pos24", 1, T0 + timedelta(hours=1))
+    frag = bd.certificate_section([rate, pos], "a-pos24", times_s=(60.0,))
+    assert "a-rate" in frag and "a-pos24" in frag and "not calibrated" not in frag
+    first = bd.certificate_section([rate, pos], "a-rate", times_s=(60.0,))
+    assert "not calibrated at that date: accel" in first

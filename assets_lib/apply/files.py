@@ -30,7 +30,13 @@ from assets_lib.apply.compensate import ACCEL_COLUMNS, GYRO_COLUMNS, correct_fra
 from assets_lib.apply.model import Calibration, CalibrationError
 from raw_schemas.errors import RawDataError
 from raw_schemas.manifest import load_manifest
-from raw_schemas.readers import MANIFEST_FILE, canonical_imu, ingest_run, read_stream, sha256_file
+from raw_schemas.readers import (
+    MANIFEST_FILE,
+    canonical_imu,
+    ingest_run,
+    read_stream,
+    sha256_file,
+)
 from raw_schemas.tables import RAW_IMU_REQUIRED
 from raw_schemas.units import STANDARD_GRAVITY_MPS2
 

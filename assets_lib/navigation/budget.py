@@ -28,8 +28,16 @@ import numpy as np
 
 from assets_lib.apply.compensate import forward, sensitivities
 from assets_lib.apply.model import Calibration
-from assets_lib.navigation.alignment import alignment_error_closed_form, alignment_error_numerical
-from assets_lib.navigation.strapdown import attitude_error_rad, exp_so3, radii_m, strapdown
+from assets_lib.navigation.alignment import (
+    alignment_error_closed_form,
+    alignment_error_numerical,
+)
+from assets_lib.navigation.strapdown import (
+    attitude_error_rad,
+    exp_so3,
+    radii_m,
+    strapdown,
+)
 from assets_lib.sim.earth import EARTH_RATE_RADPS, normal_gravity_mps2
 
 DEFAULT_TIMES_S = (60.0, 600.0, 3600.0)
@@ -147,7 +155,7 @@ def drift(cal: Calibration, profile: Profile, times_s=DEFAULT_TIMES_S) -> DriftR
     pos = np.linalg.norm(dp, axis=-1)
     tilt = np.linalg.norm(phi[..., :2], axis=-1)
     head = np.abs(phi[..., 2])
-    rss = lambda x: np.sqrt((x[1:] ** 2).sum(axis=0))  # noqa: E731
+    rss = lambda x: np.sqrt((x[1:] ** 2).sum(axis=0))
     return DriftResult(profile.name, sol.t_s, np.sqrt(rss(dp[..., 0]) ** 2 + rss(dp[..., 1]) ** 2), pos[0],
                        np.sqrt(rss(phi[..., 0]) ** 2 + rss(phi[..., 1]) ** 2), tilt[0], rss(phi[..., 2]), head[0])
 
@@ -169,8 +177,9 @@ class AlignmentBudget:
 
 
 def alignment_budget(cal: Calibration, latitude_deg: float, gravity_mps2: float,
-                     c_b2n=np.eye(3)) -> AlignmentBudget:
+                     c_b2n: np.ndarray | None = None) -> AlignmentBudget:
     """Level and heading errors of a stationary alignment with the body at ``c_b2n`` (default level, axes ENU)."""
+    c_b2n = np.eye(3) if c_b2n is None else np.asarray(c_b2n, float)
     lat = np.radians(latitude_deg)
     f_b = c_b2n.T @ np.array([0.0, 0.0, gravity_mps2])
     w_b = c_b2n.T @ (EARTH_RATE_RADPS * np.array([0.0, np.cos(lat), np.sin(lat)]))
@@ -314,3 +323,21 @@ def budget_html(budget: NavigationBudget) -> str:
             + "".join(f"<tr><td>{html.escape(q) if '&' not in q else q}</td><td class=num>{c}</td>"
                       f"<td class=num>{u}</td></tr>" for q, c, u in rows)
             + f"</table><img alt='navigation budget' src='data:image/png;base64,{png}'>")
+
+
+def certificate_section(device_records: list[dict], run_id: str, times_s=DEFAULT_TIMES_S) -> str:
+    """The certificate's navigation section for the record of ``run_id``: the budget of the device calibration
+    assembled at that record's start (each term from the newest record holding it up to then, so a rate run's
+    certificate also counts the accelerometer terms of the position run before it), naming the records used."""
+    from assets_lib.apply.model import _start, assemble
+
+    rec = next((r for r in device_records if r["content"]["run"]["run_id"] == run_id), None)
+    if rec is None:
+        raise ValueError(f"no record of run {run_id!r} among the device's records")
+    cal = assemble([r for r in device_records if _start(r) <= _start(rec)], _start(rec))
+    used = ", ".join(f"{r['run_id']} ({r['record_sha256'][:12]}...)" for r in cal.records)
+    missing = (f"; not calibrated at that date: {', '.join(g for g in cal.missing_groups if g != 'noise')}"
+               if set(cal.missing_groups) - {"noise"} else "")
+    return (budget_html(navigation_budget(cal, times_s)).replace(
+        "</p><table>", f" Device calibration at this run's start from records {html.escape(used)}"
+                       f"{html.escape(missing)}.</p><table>", 1))

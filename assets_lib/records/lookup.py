@@ -18,7 +18,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from assets_lib.apply.model import Calibration, CalibrationError, _groups_in_record, _start, assemble, to_utc
+from assets_lib.apply.model import (
+    Calibration,
+    CalibrationError,
+    _groups_in_record,
+    _start,
+    assemble,
+    to_utc,
+)
 
 DEFAULT_MAX_AGE_DAYS = 30.0
 RECORD_ASSET = "calibration_record"

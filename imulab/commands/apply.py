@@ -14,9 +14,6 @@ columns, are refused with the file and column named (exit status 1).
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import click
 
 from imulab import __version__

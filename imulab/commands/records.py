@@ -12,7 +12,6 @@ limits) since the calibration used. --strict makes any warning exit with status 
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
