@@ -140,7 +140,7 @@ def test_certificate_fragment(budget):
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_certificate_section_uses_the_device_calibration_at_the_record(budget):
+def test_certificate_section_uses_the_device_calibration_at_the_record():
     truth = example_device("TAC-N01", "tactical", 5).for_power_cycle(0, 5)
     rate, _, _ = fitted_record(truth, "quick_rate", "a-rate", 1, T0)
     pos, _, _ = fitted_record(truth, "quick_24_position", "a-pos24", 1, T0 + timedelta(hours=1))

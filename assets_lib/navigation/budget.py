@@ -271,6 +271,7 @@ def _fmt_len(m: float) -> str:
 
 
 def _fmt_t(t: float) -> str:
+    t = round(float(t), 3)
     return f"{t / 3600:g} h" if t >= 3600 else (f"{t / 60:g} min" if t >= 60 else f"{t:g} s")
 
 
