@@ -149,6 +149,9 @@ class Calibration:
     gravity_mps2: float | None
     sample_rate_hz: float | None
     at_utc: str | None = None  # assembled device calibrations: the date it is valid at
+    #: (input accel, input gyro, output accel, output gyro) units: SI for records; other tools' calibrations
+    #: imported for comparison (``assets_lib.records.export.calibration_from_imucal``) may map counts to deg/s
+    units: tuple[str, str, str, str] = ("m/s^2", "rad/s", "m/s^2", "rad/s")
 
     @property
     def identity_sha256(self) -> str:

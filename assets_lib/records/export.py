@@ -198,7 +198,8 @@ def imucal_dict(cal: Calibration) -> dict:
                + (f" valid at {cal.at_utc}" if cal.at_utc else "") + "; records "
                + ", ".join(f"{r['run_id']}={r['record_sha256']}" for r in cal.records)
                + "; body axes of the record's reference frame; " + "; ".join(ignored))
-    return {"acc_unit": "m/s^2", "gyr_unit": "rad/s", "from_acc_unit": "m/s^2", "from_gyr_unit": "rad/s",
+    u_in_a, u_in_g, u_a, u_g = cal.units
+    return {"acc_unit": u_a, "gyr_unit": u_g, "from_acc_unit": u_in_a, "from_gyr_unit": u_in_g,
             "comment": comment, "K_a": np.diag(a.scale).tolist(), "R_a": (np.eye(3) + a.misalignment_rad).tolist(),
             "b_a": a.bias.tolist(), "K_g": np.diag(g.scale).tolist(), "R_g": (np.eye(3) + g.misalignment_rad).tolist(),
             "K_ga": g.g_sensitivity.tolist(), "b_g": g.bias.tolist(), "cal_type": "Turntable",
@@ -207,6 +208,28 @@ def imucal_dict(cal: Calibration) -> dict:
 
 def export_imucal(cal: Calibration) -> str:
     return json.dumps(imucal_dict(cal), indent=4, allow_nan=False) + "\n"
+
+
+def calibration_from_imucal(doc: dict, device_id: str = "imucal") -> Calibration:
+    """An imucal Ferraris/Turntable calibration JSON as a Calibration (the inverse of ``imucal_dict``): imucal's
+    M = K R is refactored as diag(K')(I + E) with K' = diag(M), E = diag(K')^-1 M - I (zero diagonal), the same
+    matrix; b and K_ga (= G) carry over. Units are imucal's (``from_*_unit`` -> ``*_unit``)."""
+    from assets_lib.apply.model import Triad
+
+    def triad(k, r, b, g=None):
+        m = np.asarray(k, float) @ np.asarray(r, float)
+        kd = np.diag(m).copy()
+        e = m / kd[:, None] - np.eye(3)
+        np.fill_diagonal(e, 0.0)
+        t = Triad(kd, e, np.asarray(b, float), np.zeros(3), np.zeros((3, 3)), np.zeros(3))
+        return t if g is None else Triad(**{**t.__dict__, "g_sensitivity": np.asarray(g, float)})
+
+    units = (doc.get("from_acc_unit") or "?", doc.get("from_gyr_unit") or "?", doc.get("acc_unit") or "?",
+             doc.get("gyr_unit") or "?")
+    return Calibration(device_id, triad(doc["K_g"], doc["R_g"], doc["b_g"], doc["K_ga"]),
+                       triad(doc["K_a"], doc["R_a"], doc["b_a"]), (), (), (), (), (
+                           {"run_id": f"imucal {doc.get('cal_type')}", "record_sha256": "0" * 64, "test_kind": "imucal",
+                            "start_time_utc": None, "store_version": None},), None, None, None, None, units)
 
 
 # ---------------------------------------------------------------------------------------------------------------
