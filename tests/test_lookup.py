@@ -102,3 +102,57 @@ def test_records_command(store, tmp_path):
     r = runner.invoke(main, ["records", DEV, "--store", str(store), "--at", (T0 + timedelta(days=60)).isoformat(),
                              "--strict"])
     assert r.exit_code == 1 and "days old" in r.output
+
+
+@pytest.mark.slow
+def test_real_pipeline_records_are_used_end_to_end(tmp_path):
+    """The records the Dagster pipeline writes (rate, 24-position and static runs of one device, short plans):
+    looked up, applied to a run folder, exported to Kalibr and imucal."""
+    import warnings
+
+    import yaml
+
+    from assets_lib.apply.files import read_calibration_metadata
+    from assets_lib.sim.simulator import simulate_run, write_run
+    from pipelines.definitions import build_definitions
+    from pipelines.launch import execute, open_instance, register_landed_runs
+    from pipelines.resources import LabArchive
+
+    warnings.filterwarnings("ignore")
+    landing, store = tmp_path / "landing", tmp_path / "store"
+    truth = example_device("TAC-P01", "tactical", 8)
+    for plan, rid, h, kw in (("quick_rate", "pc00-rate", 0, {"plan_kwargs": {"duration_scale": 0.3}}),
+                             ("quick_24_position", "pc00-pos24", 1, {"plan_kwargs": {"duration_scale": 0.3}}),
+                             ("static_long", "pc00-static", 2, {"table_log": False,
+                                                                "plan_kwargs": {"static_duration_s": 600.0}})):
+        write_run(simulate_run(truth, plan, rid, start_time_utc=T0 + timedelta(hours=h), seed=8, **kw), landing)
+    defs = build_definitions(str(landing), str(store))
+    with open_instance(tmp_path / "dagster_home") as inst:
+        register_landed_runs(inst, LabArchive(landing_dir=str(landing)))
+        summary = execute(defs, inst, "calibrate_captures", "captures")
+        execute(defs, inst, "calibrate_devices", "devices", summary=summary)
+    r = lookup(store, "TAC-P01", T0 + timedelta(days=1), max_age_days=30)
+    assert {t.group: t.run_id for t in r.calibration.terms} == {
+        "gyro_scale_misalignment": "pc00-rate", "gyro_bias_g": "pc00-pos24", "accel": "pc00-pos24"}
+    assert r.calibration.missing_groups == () and r.calibration.noise
+    runner = CliRunner()
+    cal_json = tmp_path / "cal.json"
+    res = runner.invoke(main, ["records", "TAC-P01", "--store", str(store), "--at", (T0 + timedelta(days=1)).isoformat(),
+                               "--out", str(cal_json)])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(main, ["apply", str(cal_json), str(landing / "TAC-P01" / "pc00-pos24"), "--out",
+                               str(tmp_path / "cal.parquet")])
+    assert res.exit_code == 0, res.output
+    meta = read_calibration_metadata(tmp_path / "cal.parquet")
+    assert meta["calibration_sha256"] == json.loads(cal_json.read_text())["calibration_sha256"]
+    res = runner.invoke(main, ["export", str(cal_json), "--format", "kalibr", "--out", str(tmp_path / "imu.yaml")])
+    assert res.exit_code == 0, res.output
+    doc = yaml.safe_load((tmp_path / "imu.yaml").read_text())
+    # the tactical device's white noise (simulator truth: 0.15 deg/sqrt(h) gyro, 0.03/60 m/s^2/sqrt(Hz) accel)
+    assert doc["gyroscope_noise_density"] == pytest.approx(np.radians(0.15) / 60, rel=0.1)
+    assert doc["accelerometer_noise_density"] == pytest.approx(0.03 / 60, rel=0.1)
+    res = runner.invoke(main, ["export", str(cal_json), "--format", "imucal", "--out", str(tmp_path / "imucal.json")])
+    assert res.exit_code == 0, res.output
+    from imucal.management import load_calibration_info
+
+    assert load_calibration_info(tmp_path / "imucal.json").K_a.shape == (3, 3)
