@@ -146,6 +146,7 @@ def test_imulab_apply_on_files(device, tmp_path):
     meta = read_calibration_metadata(out)
     assert meta["calibration_sha256"] == device["records"][1]["record_sha256"]
     assert meta["records"][0]["store_version"] == "v0001" and meta["records"][0]["run_id"] == "a-pos24"
+    assert meta["records"][0]["record_schema_version"] == "1.0" and meta["record_schema_versions"] == ["1.0"]
     assert meta["input"]["sha256"]["imu.parquet"] and meta["missing_groups"] == ["gyro_scale_misalignment", "noise"]
     got = pd.read_parquet(out)
     want = correct_frame(calibration_from_record(device["records"][1]), ingest_run(run_dir).imu)

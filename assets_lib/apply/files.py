@@ -134,7 +134,7 @@ def calibration_metadata(cal: Calibration, data: ImuInput, warnings: list[str], 
         "device_id": cal.device_id,
         "valid_at_utc": cal.at_utc,
         "records": list(cal.records),  # run id, record sha256, test kind, start time, store version
-        "record_schema_version": "1.0",
+        "record_schema_versions": sorted({str(r.get("record_schema_version")) for r in cal.records}),
         "applied_terms": [f"{t.sensor} {t.axis} {t.coefficient}" for t in cal.terms],
         "missing_groups": list(cal.missing_groups),
         "not_applied": list(cal.not_applied),

@@ -199,6 +199,7 @@ class Calibration:
 def _record_info(record: dict, store_version: str | None = None) -> dict:
     c = record["content"]
     return {"run_id": c["run"]["run_id"], "record_sha256": record["record_sha256"],
+            "record_schema_version": record.get("record_schema_version"),
             "test_kind": c["run"]["test_kind"], "start_time_utc": c["run"]["start_time_utc"],
             "store_version": store_version}
 
