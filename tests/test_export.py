@@ -131,6 +131,9 @@ def test_openvins_intrinsics_reproduce_the_model(cal, model):
     for k in ("R_IMUtoGYRO", "R_IMUtoACC"):
         np.testing.assert_allclose(m[k] @ m[k].T, np.eye(3), atol=1e-14)
         assert np.linalg.det(m[k]) == pytest.approx(1.0)
+    dw = [float(v) for v in re.findall(r"Dw = Tw\^-1 row \d: \[([^\]]*)\]", text) for v in v.split(",")]
+    np.testing.assert_allclose(np.reshape(dw, (3, 3)) @ m["Tw"], np.eye(3), atol=1e-13)
+    np.testing.assert_array_equal(np.reshape(dw, (3, 3)), tri(np.reshape(dw, (3, 3))))  # Dw keeps the structure
     r_b2i = openvins_intrinsics(cal, model)["R_BODYtoIMU"]
     rows = [float(v) for v in re.findall(r"R_BODYtoIMU row \d: \[([^\]]*)\]", text) for v in v.split(",")]
     np.testing.assert_allclose(np.reshape(rows, (3, 3)), r_b2i, rtol=0, atol=1e-14)

@@ -171,6 +171,10 @@ def export_openvins(cal: Calibration, model: str = "kalibr") -> str:
         "# not representable in OpenVINS (ignored): accel K2 at 1 g [m/s^2] = "
         f"{(a.k2 * 9.80665**2).tolist()}, largest cross-coupling at 1 g x 1 g [m/s^2] = "
         f"{float(np.abs(a.cross_coupling).max() * 9.80665**2):.3g}",
+        *[f"# OpenVINS state Dw = Tw^-1 row {i}: [{', '.join(f'{v:.15g}' for v in row)}]"
+          for i, row in enumerate(np.linalg.inv(mats["Tw"]))],
+        *[f"# OpenVINS state Da = Ta^-1 row {i}: [{', '.join(f'{v:.15g}' for v in row)}]"
+          for i, row in enumerate(np.linalg.inv(mats["Ta"]))],
         "imu0:",
         "  T_i_b:", *[f"    - [ {', '.join(repr(float(v)) for v in row)} ]" for row in np.eye(4)],
         *_noise_block(cal, "  "),
