@@ -18,7 +18,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-import mc_calibration_coverage as mc  # noqa: E402
+import mc_calibration_coverage as mc
 
 FAMILIES = {
     "accel:accel:bias", "accel:accel:scale_factor", "accel:accel:misalignment", "accel:accel:k2",
