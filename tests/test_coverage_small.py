@@ -48,6 +48,20 @@ def test_clustered_standard_errors_known_cases():
     assert r["sd_z_se"] == pytest.approx(1 / np.sqrt(2 * 4000), rel=0.1)
 
 
+def test_simulated_flicker_wanders_by_the_allan_floor():
+    """The fits' bias uncertainty counts the run mean's 1/f wander at the Allan floor (2 ln2 / pi) B^2; the
+    simulator must produce it (a zero-mean FFT block as long as the run made it zero: biases over-covered)."""
+    from assets_lib.sim.noise import flicker_noise
+
+    rng = np.random.default_rng(15)
+    floor = 2 * np.log(2) / np.pi
+    for n in (2048, 3001):
+        x = np.array([flicker_noise(n, 100.0, 1.0, rng) for _ in range(800)])
+        assert 0.8 < np.var(x.mean(axis=1)) / floor < 1.25
+        h = n // 2
+        assert 0.85 < np.var(x[:, :h].mean(axis=1) - x[:, h:2 * h].mean(axis=1)) / (2 * floor) < 1.15
+
+
 @pytest.mark.slow
 def test_small_benchmark_scores_every_family(tmp_path):
     out = tmp_path / "cov"
