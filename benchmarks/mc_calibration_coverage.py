@@ -14,7 +14,10 @@ stderr. Also scored, from the same result objects:
 
 - the seed 000 full-revolution difference method (``GyroRateFit.difference``, printed in the cross-check
   table): scale factor and misalignment, normal 95 % intervals;
-- the nonlinearity statistic (max |residual| / full scale; a statistic with a detection floor, not an interval):
+- ``imulab fit rate`` (``fit_rate_means``, seed 001's plateau-means fit) on each axis' sweep tabulated as a lab
+  without raw logs would (table rate, plateau mean and sem): scale factor, K+, K-, asymmetry;
+- the nonlinearity statistic (max |residual| / full scale, rate fit and means fit; a statistic with a detection floor, not an
+  interval):
   the simulated sensors are linear, so the fraction of fits whose statistic stays below the printed 95 % noise
   floor is the floor's coverage (target 95 %).
 
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -103,7 +107,7 @@ def _row(base, sensor, axis, coefficient, fit, value, stderr, lo, hi, t, **extra
                 truth=t, z=(value - t) / stderr, covered=bool(lo <= t <= hi), **extra)
 
 
-def score(base: dict, rf, af, gs, truth: dict) -> list[dict]:
+def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> list[dict]:
     """Records for every observable, interval-bearing estimate (see the module docstring)."""
     recs = []
     for tag, ct in (("rate", rf.coefficient_table()), ("accel", af.coefficient_table()),
@@ -123,6 +127,17 @@ def score(base: dict, rf, af, gs, truth: dict) -> list[dict]:
             for name, v, s, t in items:
                 if np.isfinite(v) and np.isfinite(s) and s > 0:
                     recs.append(_row(base, "gyro", a, name, "difference", v, s, v - Z95 * s, v + Z95 * s, t))
+    for a, mf in (means or {}).items():
+        K = truth[("gyro", a, "scale_factor", "rate")]
+        for c, t in (("scale_factor", K), ("scale_factor_pos", K), ("scale_factor_neg", K), ("asymmetry", 0.0)):
+            co = mf.coefficient(c)
+            if co.observable and np.isfinite(co.stderr) and co.stderr > 0:
+                recs.append(_row(base, "gyro", a, c, "means", co.value, co.stderr, co.ci95_low, co.ci95_high, t))
+        nl = mf.coefficient("nonlinearity")
+        fl = re.search(r"noise floor \(95 %\) ([0-9.eE+-]+) ppm", nl.note)
+        if nl.observable and fl:
+            recs.append(dict(base, sensor="gyro", axis=a, coefficient="nonlinearity_below_floor", fit="means",
+                             value=nl.value, stderr=np.nan, truth=0.0, z=np.nan, covered=bool(nl.value <= float(fl.group(1)))))
     for ax in rf.axes:
         sw = ax.sweep
         if np.isfinite(sw.nonlinearity) and np.isfinite(sw.nonlinearity_floor):
@@ -163,7 +178,26 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
                    np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
                    np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc))
     base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan}
-    return score(base, rf, af, gs, truth)
+    return score(base, rf, af, gs, truth, rate_means(plates[0]))
+
+
+def rate_means(p: pd.DataFrame) -> dict:
+    """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab without raw logs would tabulate it: table
+    rate about the axis, plateau mean and sem of that axis (no plateau times: no correlated-noise model)."""
+    from assets_lib.calibration.means_fit import fit_rate_means
+    from assets_lib.calibration.rate_fit import on_axis_rows
+
+    om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
+    ea = p[[f"omega_earth_{a}_radps" for a in AX]].to_numpy(float)
+    ok = ~p["flagged"].astype(bool).to_numpy()
+    out = {}
+    for i, a in enumerate(AX):
+        rows = on_axis_rows(om, i) & ok
+        if rows.sum() >= 5:
+            out[a] = fit_rate_means((om - ea)[rows, i], p.loc[rows, f"gyro_{a}_radps_mean"].to_numpy(float),
+                                    p.loc[rows, f"gyro_{a}_radps_sem"].to_numpy(float), rate_unit="rad/s",
+                                    output_unit="rad/s")
+    return out
 
 
 def family(df: pd.DataFrame) -> pd.Series:

@@ -25,7 +25,9 @@ FAMILIES = {
     "accel:accel:cross_coupling", "gyro:rate:bias", "gyro:rate:scale_factor", "gyro:rate:misalignment",
     "gyro:rate:scale_factor_pos", "gyro:rate:scale_factor_neg", "gyro:rate:sf_asymmetry",
     "gyro:rate:sf_nonlinearity_below_floor", "gyro:static:bias", "gyro:static:g_sensitivity",
-    "gyro:difference:scale_factor", "gyro:difference:misalignment",
+    "gyro:difference:scale_factor", "gyro:difference:misalignment", "gyro:means:scale_factor",
+    "gyro:means:scale_factor_pos", "gyro:means:scale_factor_neg", "gyro:means:asymmetry",
+    "gyro:means:nonlinearity_below_floor",
 }
 
 
