@@ -393,13 +393,16 @@ def simulate_run(
     tail_s: float = 2.0,
     plan_kwargs: dict | None = None,
     power_on_s: float = 0.0,
+    temperature_degc=None,
     replay: ReplayInputs | None = None,
 ) -> SimulatedRun:
     """Simulate one run of ``plan`` for ``truth`` (already drawn for its power cycle), seeded and deterministic.
 
     ``effects`` is the chain (``DEFAULT_EFFECTS`` = error model, Allan noise, saturation); add effect families
     with ``effects.sensor_chain([...])``. ``power_on_s`` is the time from power-on to the first sample (warm-up,
-    ramps and the housing temperature continue across the runs of a power cycle). ``replay`` drives the run with
+    ramps and the housing temperature continue across the runs of a power cycle). ``temperature_degc`` is a
+    function of the time since power-on [s] giving the thermometer temperature (a chamber profile; default
+    :func:`housing_temperature_degc`). ``replay`` drives the run with
     a recorded run's inputs (its plan, timestamps, table log, temperature log and power-on time; ``plan``,
     ``site`` and the other run descriptors are then taken from it).
     """
@@ -436,6 +439,8 @@ def simulate_run(
     t_on = t + power_on_s if power_on_s else t
     if replay is not None and replay.temperature is not None:
         temp = np.asarray(replay.temperature, dtype=float)
+    elif temperature_degc is not None:
+        temp = np.asarray(temperature_degc(t_on), dtype=float) * np.ones(n)
     else:
         temp = housing_temperature_degc(truth, t_on)  # warm-up of the housing
     ctx = SimContext(t, inputs, truth, fs, rng, temp, inputs.trajectory.step_index, t_on, accel_inputs)

@@ -26,6 +26,8 @@ def register(cls):
 
 
 def _tuples(v):
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
     if isinstance(v, (list, tuple)):
         return tuple(_tuples(x) for x in v)
     return v
@@ -45,6 +47,14 @@ class Effect:
 
     family: ClassVar[str] = ""
     stage: ClassVar[str] = ""
+
+    def __post_init__(self):  # arrays and lists become (nested) tuples: hashable, comparable, JSON-ready
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, (list, tuple, np.ndarray)):
+                object.__setattr__(self, f.name, _tuples(v))
+            elif isinstance(v, (np.floating, np.integer)):
+                object.__setattr__(self, f.name, v.item())
 
     @property
     def name(self) -> str:  # the simulator's SensorEffect protocol and manifest notes use ``name``
