@@ -12,7 +12,7 @@ from assets_lib.sim.effects.base import Effect, register
 @register
 @dataclass(frozen=True)
 class Latency(Effect):
-    """Effects.md latency, [GROVES2013] sec. 4.3 (sensor/processing delay): the sample stamped t on the IMU clock
+    """Effects.md latency, [GROVES2013] (sensor and processing delay): the sample stamped t on the IMU clock
     holds the input of true time t - delay, per triad: y(t) = h(t - dt) ~ h - dt dh/dt.
 
     The kinematics are evaluated at the delayed times (no interpolation of outputs, so the noise stays white).
@@ -41,7 +41,7 @@ class TimebaseError(Effect):
     log, on the true clock, drifts against them by eps x run length). With ``integrating_outputs`` (delta-angle /
     delta-velocity outputs divided by the nominal sample period, the usual FOG / tactical IMU case) every output
     also scales by 1/(1 + eps) (the sample period is 1/(1 + eps) of nominal): a common scale-factor error of
-    -eps on gyros and accelerometers alike ([TITTERTON2004] sec. 8.3 incremental outputs).
+    -eps on gyros and accelerometers alike ([TITTERTON2004], incremental outputs).
     """
 
     family = "timebase_error"

@@ -83,7 +83,7 @@ class TableWobble(Effect):
 @register
 @dataclass(frozen=True)
 class LeverArm(Effect):
-    """[TITTERTON2004] sec. 10.3 lever-arm (size) effect: the accelerometer at body position r (from a point on the
+    """[TITTERTON2004] lever-arm (size) effect: the accelerometer at body position r (from a point on the
     rotation axis) senses f = f_0 + dw/dt x r + w x (w x r), w = table motion rate in body axes.
 
     ``position_m`` (x, y, z) [m]; on a plateau the centripetal term is -w^2 r_perp (radial), during ramps the

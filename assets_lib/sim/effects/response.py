@@ -30,7 +30,7 @@ def _add(sensor, gyro, accel, d):
 @register
 @dataclass(frozen=True)
 class GSensitivity(Effect):
-    """[IEEE952] Annex B drift terms D_g and D_gg (g and anisoelastic g^2), [TITTERTON2004] sec. 4.2.6:
+    """[IEEE952] model equation, g-sensitive and g^2 (anisoelastic) drift terms, [TITTERTON2004]:
     w_i += sum_j G[i][j] f_j + sum_(j<=k) G2[i][jk] f_j f_k, f = specific force at the gyro (gravity, centripetal,
     tangential, vibration).
 
@@ -119,7 +119,7 @@ class ScaleFactorNonlinearity(Effect):
 @register
 @dataclass(frozen=True)
 class ScaleFactorAsymmetry(Effect):
-    """[IEEE952] sec. 3 / effects.md scale-factor asymmetry: K = K_bar (1 + eps/2 sgn x), so y += (eps/2) |x| with x
+    """[IEEE952] scale-factor asymmetry (definitions), effects.md: K = K_bar (1 + eps/2 sgn x), so y += (eps/2) |x| with x
     the sensed input; eps = (K+ - K-)/K_bar, dimensionless per axis (gyro and accelerometer)."""
 
     family = "scale_factor_asymmetry"

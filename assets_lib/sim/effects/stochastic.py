@@ -12,7 +12,7 @@ from assets_lib.sim.noise import AllanParams, allan_noise
 
 
 def gauss_markov(n: int, rate_hz: float, sigma: float, tau_s: float, rng: np.random.Generator) -> np.ndarray:
-    """[IEEE952] Annex C / [ELSHEIMY2008] eq. 14: first-order Gauss-Markov x_k = a x_(k-1) + w_k, a = exp(-dt/tau),
+    """[ELSHEIMY2008] first-order Gauss-Markov x_k = a x_(k-1) + w_k, a = exp(-dt/tau),
     stationary std ``sigma`` (w_k ~ N(0, sigma^2 (1 - a^2)), x_0 ~ N(0, sigma^2))."""
     if sigma == 0.0 or n == 0:
         return np.zeros(n)
@@ -24,7 +24,7 @@ def gauss_markov(n: int, rate_hz: float, sigma: float, tau_s: float, rng: np.ran
 
 
 def gauss_markov_avar(tau: np.ndarray, sigma: float, tc_s: float) -> np.ndarray:
-    """[ELSHEIMY2008] eq. 15: Allan variance of a first-order Gauss-Markov process (q_c = 2 sigma^2 / T_c)."""
+    """[ELSHEIMY2008] Allan variance of a first-order Gauss-Markov process (q_c = 2 sigma^2 / T_c)."""
     tau = np.asarray(tau, dtype=float)
     qc = 2 * sigma**2 / tc_s
     r = tau / tc_s

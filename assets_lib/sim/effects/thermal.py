@@ -19,7 +19,7 @@ def _sensor_temperature(ctx, lag_s: float) -> np.ndarray:
 @register
 @dataclass(frozen=True)
 class TemperatureBias(Effect):
-    """[IEEE952] Annex B/C temperature-sensitivity term, [TITTERTON2004] sec. 8: b(T) = k1 dT + k2 dT^2, dT = T_s - T0.
+    """[IEEE952] model equation, temperature-sensitive drift term, [TITTERTON2004]: b(T) = k1 dT + k2 dT^2, dT = T_s - T0.
 
     T_s is the sensing element's temperature: the thermometer temperature through a first-order lag
     ``lag_s`` (dT_s/dt = (T - T_s)/lag_s; 0 = no lag), which makes the bias show hysteresis between heating
@@ -46,7 +46,7 @@ class TemperatureBias(Effect):
 @register
 @dataclass(frozen=True)
 class TemperatureScaleFactor(Effect):
-    """[IEEE952] Annex B scale-factor temperature sensitivity, effects.md: SF(T) = SF0 (1 + s1 dT), dT = T_s - T0.
+    """[IEEE952] model equation, scale-factor temperature sensitivity, effects.md: SF(T) = SF0 (1 + s1 dT), dT = T_s - T0.
 
     Added as s1 dT times the sensed input through the truth's scale/misalignment matrix; s1 [1/K] per axis;
     T_s lagged like :class:`TemperatureBias`.
@@ -117,7 +117,7 @@ class BiasRamp(Effect):
 @register
 @dataclass(frozen=True)
 class BiasStep(Effect):
-    """Bias step (a mode hop, a fixture knock, [IEEE952] Annex B "bias shift"): b(t) = D (1 - exp(-(t - t_s)/tau))
+    """Bias step (a mode hop, a fixture knock, [IEEE952] bias shift): b(t) = D (1 - exp(-(t - t_s)/tau))
     for t >= t_s, else 0; ``settle_tau_s`` = 0 is an instantaneous step.
 
     ``at_s`` is on the run's IMU clock (``clock='run'``) or counted from power-on (``clock='power_on'``).
