@@ -172,7 +172,7 @@ def _compute_trajectory(plan, t_s: np.ndarray) -> Trajectory:
 # Opt-in cache for replicates: the kinematics of a plan at a time grid are the same in every replicate
 # ----------------------------------------------------------------------------------------------------------
 _CACHE: "OrderedDict[tuple, Trajectory] | None" = None
-_CACHE_MAX = 48
+_CACHE_MAX = 64
 CACHE_STATS = {"hits": 0, "subset_hits": 0, "misses": 0}
 
 
@@ -189,10 +189,10 @@ def _take(tr: Trajectory, k: np.ndarray, t: np.ndarray) -> Trajectory:
 
 def _lookup(plan, pk: str, t: np.ndarray):
     """A cached trajectory of this plan whose grid contains every requested time (indexing; bit-identical)."""
-    for (p, _), tr in reversed(_CACHE.items()):
-        g = tr.t_s
-        if p != pk or g.size < 2:
+    for key, tr in reversed(_CACHE.items()):
+        if key[0] != pk or not isinstance(tr, Trajectory) or tr.t_s.size < 2:
             continue
+        g = tr.t_s
         dt = (g[-1] - g[0]) / (g.size - 1)
         if dt <= 0:
             continue
@@ -214,7 +214,7 @@ def _lookup(plan, pk: str, t: np.ndarray):
 
 
 @contextmanager
-def kinematics_cache(max_entries: int = 48):
+def kinematics_cache(max_entries: int = 64):
     """Within this block :func:`trajectory` memoises by (plan, times) and serves any subset of a cached time grid
     by indexing. Results are bit-identical to the uncached path (each sample's kinematics depend on its own time
     only); cached arrays are read-only, so a caller that writes into them fails loudly instead of corrupting it."""
@@ -265,14 +265,32 @@ class BodyInputs:
 
 
 def body_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float) -> BodyInputs:
-    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16)."""
+    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16); memoised
+    for identical requests inside :func:`kinematics_cache`."""
+    key = None
+    if _CACHE is not None:
+        t = np.asarray(t_s, dtype=float)
+        key = ("body", _plan_key(plan), hashlib.blake2b(t.tobytes(), digest_size=16).hexdigest() + str(t.size),
+               float(latitude_deg), float(gravity_mps2))
+        hit = _CACHE.get(key)
+        if hit is not None:
+            CACHE_STATS["hits"] += 1
+            _CACHE.move_to_end(key)
+            return hit
     tr = trajectory(plan, t_s)
     ct = np.swapaxes(tr.c_b2l, 1, 2)
     w_ie = earth_rate_level(latitude_deg, plan.frame)
     f_l = specific_force_level(gravity_mps2, plan.frame)
     w_e = ct @ w_ie
     w_motion = np.einsum("nij,nj->ni", ct, tr.omega_motion_level_radps)
-    return BodyInputs(w_motion + w_e, w_e, ct @ f_l, tr)
+    out = BodyInputs(w_motion + w_e, w_e, ct @ f_l, tr)
+    if key is not None and _CACHE is not None:
+        for a in (out.omega_b_radps, out.omega_earth_b_radps, out.f_b_mps2):
+            a.flags.writeable = False
+        _CACHE[key] = out
+        while len(_CACHE) > _CACHE_MAX:
+            _CACHE.popitem(last=False)
+    return out
 
 
 def consistent_plan_orientations(
