@@ -32,6 +32,18 @@ def _seg(run):
     return segment_run(ing.manifest, ing.imu, ing.table)
 
 
+def _coefs(fit, sensor: str, name: str) -> tuple[list, list]:
+    """(values, stderrs) per axis x, y, z from a fit's tidy coefficient table."""
+    c = fit.coefficient_table()
+    rows = [c[(c.sensor == sensor) & (c.axis == a) & (c.coefficient == name)].iloc[0] for a in "xyz"]
+    return [float(r.value) for r in rows], [float(r.stderr) for r in rows]
+
+
+def _diff(fa, fb, sensor: str, name: str) -> tuple[list, list]:
+    (va, _), (vb, sb) = _coefs(fa, sensor, name), _coefs(fb, sensor, name)
+    return [b - a for a, b in zip(va, vb)], sb
+
+
 def _r2(x: np.ndarray, y: np.ndarray, base: np.ndarray) -> float:
     """Alias R^2: share of y's variance (after projecting out ``base``) that x reproduces (after the same)."""
     q, _ = np.linalg.qr(base)
@@ -63,8 +75,8 @@ def main(argv=None) -> dict:
         "injected_s": d,
         "clock_offset_change_s": sb.alignment.offset_s - sa.alignment.offset_s,
         "clock_offset_stderr_s": sb.alignment.offset_stderr_s,
-        "gyro_scale_factor_change": [b.scale_factor - a.scale_factor for a, b in zip(fa.axes, fb.axes)],
-        "gyro_scale_factor_stderr": [b.scale_factor_stderr for b in fb.axes],
+        "gyro_scale_factor_change": _diff(fa, fb, "gyro", "scale_factor")[0],
+        "gyro_scale_factor_stderr": _diff(fa, fb, "gyro", "scale_factor")[1],
     }
 
     # -- mean table-rate error == gyro scale factor; timebase error == gyro and accel scale factor -------
@@ -76,10 +88,10 @@ def main(argv=None) -> dict:
         aa, ab = fit_accel_multiposition(pa.plateaus), fit_accel_multiposition(pb.plateaus)
         out[fam] = {
             "injected": eps,
-            "gyro_scale_factor_change": [b.scale_factor - a.scale_factor for a, b in zip(fa.axes, fb.axes)],
-            "gyro_scale_factor_stderr": [b.scale_factor_stderr for b in fb.axes],
-            "accel_scale_factor_change": [b.scale_factor[0] - a.scale_factor[0] for a, b in zip(aa.axes, ab.axes)],
-            "accel_scale_factor_stderr": [b.scale_factor[1] for b in ab.axes],
+            "gyro_scale_factor_change": _diff(fa, fb, "gyro", "scale_factor")[0],
+            "gyro_scale_factor_stderr": _diff(fa, fb, "gyro", "scale_factor")[1],
+            "accel_scale_factor_change": _diff(aa, ab, "accel", "scale_factor")[0],
+            "accel_scale_factor_stderr": _diff(aa, ab, "accel", "scale_factor")[1],
             "clock_drift_ppm": sb.alignment.clock_drift_ppm,
             "clock_drift_stderr_ppm": sb.alignment.clock_drift_stderr_ppm,
         }

@@ -79,6 +79,14 @@ def lstsq(a: np.ndarray, y: np.ndarray, sigma: np.ndarray | None = None):
     return coef, np.sqrt(np.diag(s2 * np.linalg.inv(a.T @ a)))
 
 
+def fitted(fit, sensor: str, axis: str, name: str) -> tuple[float, float]:
+    """(value, stderr) of one coefficient from a fit's tidy coefficient table (docs/design.md contract)."""
+    c = fit.coefficient_table()
+    r = c[(c.sensor == sensor) & (c.axis == axis) & (c.coefficient == name)]
+    assert len(r) == 1 and bool(r.observable.iloc[0]), f"{sensor} {axis} {name} not observable"
+    return float(r.value.iloc[0]), float(r.stderr.iloc[0])
+
+
 def assert_recovered(est, se, truth, what):
     est, se, truth = map(np.atleast_1d, (est, se, truth))
     assert np.all(se > 0) and np.all(np.abs(truth) > 5 * se), f"{what}: injected {truth} not well above stderr {se}"
@@ -281,8 +289,7 @@ def test_scale_factor_asymmetry_gyro_and_accel(tmp_path):
     eff = EFFECTS["scale_factor_asymmetry"](gyro=(0, 0, eg), accel=(ea, 0, 0))
     _, ing = run_raw(tmp_path, rate_plan(), [eff], kind="rate")
     fit = fit_gyro_rate(segment_run(ing.manifest, ing.imu, ing.table).plateaus)
-    sw = fit.axes[2].sweep
-    assert_recovered(sw.asymmetry, sw.asymmetry_stderr, eg, "gyro asymmetry (rate fit, K+ vs K-)")
+    assert_recovered(*fitted(fit, "gyro", "z", "sf_asymmetry"), eg, "gyro asymmetry (rate fit, K+ vs K-)")
     _, ing = run_raw(tmp_path, POS24, [eff], kind="multiposition", run_id="p1")
     p = plateau_rows(segment_run(ing.manifest, ing.imu, ing.table))
     f = p[["f_ref_x_mps2", "f_ref_y_mps2", "f_ref_z_mps2"]].to_numpy()
@@ -320,18 +327,17 @@ def test_timebase_error_is_a_common_scale_factor_and_a_clock_drift(tmp_path):
     eff = EFFECTS["timebase_error"](clock_rate_error=eps)
     _, ing = run_raw(tmp_path, rate_plan(), [eff], kind="rate")
     seg = segment_run(ing.manifest, ing.imu, ing.table)
-    ax = fit_gyro_rate(seg.plateaus).axes[2]
-    assert_recovered(ax.scale_factor - 1, ax.scale_factor_stderr, 1 / (1 + eps) - 1, "gyro scale factor")
+    v, se = fitted(fit_gyro_rate(seg.plateaus), "gyro", "z", "scale_factor")
+    assert_recovered(v - 1, se, 1 / (1 + eps) - 1, "gyro scale factor")
     # t_table = t_imu / (1 + eps) + offset: the segmentation's drift statistic sees it (its half-record offsets sit
     # at the ramp-weighted centroids of the halves, so it reads about 0.8 eps on this plan: sign and order only)
     al = seg.alignment
     assert -1.2e6 * eps < al.clock_drift_ppm < -0.5e6 * eps
     _, ing = run_raw(tmp_path, POS24, [eff], kind="multiposition", run_id="p1")
     acc = fit_accel_multiposition(segment_run(ing.manifest, ing.imu, ing.table).plateaus)
-    for a in acc.axes:
-        v, s, ob = a.scale_factor
-        assert ob
-        assert_recovered(v - 1, s, 1 / (1 + eps) - 1, f"accel {a.axis} scale factor")
+    for a in "xyz":
+        v, se = fitted(acc, "accel", a, "scale_factor")
+        assert_recovered(v - 1, se, 1 / (1 + eps) - 1, f"accel {a} scale factor")
 
 
 def test_lever_arm_centripetal(tmp_path):
@@ -358,8 +364,8 @@ def test_table_rate_error_mean_and_ripple(tmp_path):
                                       ripple_2_phase_rad=p2)
     _, ing = run_raw(tmp_path, rate_plan(), [eff], kind="rate")
     seg = segment_run(ing.manifest, ing.imu, ing.table)
-    ax = fit_gyro_rate(seg.plateaus).axes[2]
-    assert_recovered(ax.scale_factor - 1, ax.scale_factor_stderr, eps, "mean table-rate error (as scale factor)")
+    v, se = fitted(fit_gyro_rate(seg.plateaus), "gyro", "z", "scale_factor")
+    assert_recovered(v - 1, se, eps, "mean table-rate error (as scale factor)")
     ws, m = window_samples(seg, ing, 50.0)
     th = table_angle_at_imu(seg, ing)[m]
     w = np.radians(np.array([s.table_rate_dps for s in ing.manifest.plan.steps]))[ws[m]]
