@@ -11,7 +11,7 @@ import pytest
 
 from assets_lib.sim.effects import EFFECTS, sensor_chain
 from assets_lib.sim.plans import build_plan
-from assets_lib.sim.replay import infer_power_on_s, load_replay, replay_run
+from assets_lib.sim.replay import infer_power_on_s, load_replay, replay_run, replicates
 from assets_lib.sim.simulator import example_device, simulate_run, write_run
 
 T0 = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
@@ -75,3 +75,18 @@ def test_replay_uses_the_recorded_temperature_and_inferred_power_on(tmp_path):
     diff = (rep.imu_raw["gyro_x"].to_numpy() - base.imu_raw["gyro_x"].to_numpy()) * lsb
     t = rep_in.time_s
     np.testing.assert_allclose(diff, 0.01 * np.exp(-(t + 1800.0) / 600.0), atol=lsb)
+
+
+def test_replicates_of_a_recorded_run_differ_only_by_noise(tmp_path):
+    truth = example_device("NAV-3", "navigation", 2)
+    run = simulate_run(truth, build_plan("quick_rate", duration_scale=0.1), "r", test_kind="rate", seed=1)
+    d = write_run(run, tmp_path)
+    rep = load_replay(d)
+    reps = list(replicates(rep, truth, sensor_chain([]), [1, 2, 3]))
+    assert reps[0].imu_raw.equals(replay_run(d, truth, sensor_chain([]), 1).imu_raw)  # cached == uncached
+    assert reps[0].imu_raw.equals(run.imu_raw)
+    for r in reps[1:]:
+        assert r.imu_raw["time_s"].equals(run.imu_raw["time_s"]) and r.table_raw.equals(run.table_raw)
+        assert not r.imu_raw["gyro_z"].equals(run.imu_raw["gyro_z"])
+        lsb = np.radians(truth.gyro.lsb)
+        assert np.std((r.imu_raw["gyro_z"] - run.imu_raw["gyro_z"]) * lsb) < 1e-4  # noise only (rad/s)

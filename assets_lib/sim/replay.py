@@ -84,6 +84,16 @@ def replay_run(run_dir: str | Path, truth=None, effects=None, seed: int | None =
                         table_clock_offset_s=tf.table_clock_offset_s if tf is not None else None)
 
 
+def replicates(rep: ReplayInputs, truth, effects, seeds):
+    """Replicates of one recorded run (load it once with :func:`load_replay`): one simulated run per noise seed,
+    with the kinematics cached across them (``kinematics_cache``; bit-identical to computing them each time)."""
+    from assets_lib.sim.kinematics import kinematics_cache
+
+    with kinematics_cache():
+        for s in seeds:
+            yield simulate_run(truth, rep.manifest.plan, rep.manifest.run_id, effects=effects, seed=int(s), replay=rep)
+
+
 def _keys(path: Path) -> set:
     import json
 
