@@ -32,7 +32,10 @@ from datetime import datetime, timedelta, timezone
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import segment_run
 from assets_lib.sim.kinematics import CACHE_STATS, kinematics_cache

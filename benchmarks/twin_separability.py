@@ -16,14 +16,17 @@ import argparse
 import json
 
 import numpy as np
-import pandas as pd
 
 from assets_lib.calibration.multiposition import fit_accel_multiposition
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import segment_run
 from assets_lib.sim.effects import EFFECTS, sensor_chain
 from assets_lib.sim.plans import build_plan
-from assets_lib.sim.simulator import example_device, housing_temperature_degc, simulate_run
+from assets_lib.sim.simulator import (
+    example_device,
+    housing_temperature_degc,
+    simulate_run,
+)
 from raw_schemas.readers import ingest_frames
 
 

@@ -13,7 +13,10 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import segment_run
 from assets_lib.noise.allan import allan_deviations

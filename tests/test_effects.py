@@ -23,7 +23,13 @@ from assets_lib.sim.effects.stochastic import gauss_markov_avar
 from assets_lib.sim.kinematics import body_inputs
 from assets_lib.sim.noise import AllanParams
 from assets_lib.sim.plans import build_plan
-from assets_lib.sim.simulator import DeviceTruth, SiteSpec, TriadTruth, simulate_run, write_run
+from assets_lib.sim.simulator import (
+    DeviceTruth,
+    SiteSpec,
+    TriadTruth,
+    simulate_run,
+    write_run,
+)
 from raw_schemas.readers import ingest_run
 
 FS = 100.0

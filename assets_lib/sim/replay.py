@@ -19,7 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from assets_lib.sim.simulator import ReplayInputs, SimulatedRun, load_truth, simulate_run
+from assets_lib.sim.simulator import (
+    ReplayInputs,
+    SimulatedRun,
+    load_truth,
+    simulate_run,
+)
 from raw_schemas.manifest import load_manifest
 from raw_schemas.readers import find_stream, read_stream
 

@@ -44,9 +44,17 @@ registered with ``@register``; nothing else changes. No family is on by default:
 
 from __future__ import annotations
 
-from assets_lib.sim.effects.base import EFFECTS, Effect, TableMotion, effect_from_dict, effects_from_list, register
 from assets_lib.sim.effects import clock, motion, response, stochastic, thermal  # noqa: F401  (registration)
-from assets_lib.sim.effects.base import sensor_chain, split_stages
+from assets_lib.sim.effects.base import (
+    EFFECTS,
+    Effect,
+    TableMotion,
+    effect_from_dict,
+    effects_from_list,
+    register,
+    sensor_chain,
+    split_stages,
+)
 
 __all__ = ["EFFECTS", "Effect", "TableMotion", "effect_from_dict", "effects_from_list", "register", "sensor_chain",
            "split_stages"]
