@@ -18,11 +18,14 @@ stderr. Also scored, from the same result objects:
   without raw logs would (table rate, plateau mean and sem): scale factor, K+, K-, asymmetry;
 - the nonlinearity statistic (max |residual| / full scale, rate fit and means fit; a statistic with a detection floor, not an
   interval):
-  the simulated sensors are linear, so the fraction of fits whose statistic stays below the printed 95 % noise
+  the simulated sensors are linear (trials without injected asymmetry), so the fraction of fits whose statistic stays below the printed 95 % noise
   floor is the floor's coverage (target 95 %).
 
 Truths: gyro rate-fit bias where g-sensitivity is not separable is b + G f_bar (the record says so in its note);
-K+ = K- = K and asymmetry 0 (the default simulated scale factor is symmetric); the static gyro bias is b.
+the static gyro bias is b. Scale-factor asymmetry eps (the digital twin's ``ScaleFactorAsymmetry``, drawn per
+axis with the grade's ``ASYMMETRY_SD``) is injected into the rate run of every other plan cycle, so asymmetry is
+tested away from zero: K+- = K (1 +- eps/2), asymmetry eps; there the rate-fit bias is not scored (the straight
+line's bias absorbs (eps/2) K |w| averaged with the fit's weights). Elsewhere K+ = K- = K, asymmetry 0.
 
 Schedules: the rate plan and the position plan of trial k cycle through ``RATE_PLANS`` and ``POS_PLANS`` (the quick
 plans, a 6-position subset of the 24 positions, the seeds' 8-, 12- and 24-position plans and rate sequence, their
@@ -63,6 +66,8 @@ TARGET_COVERAGE = (0.93, 0.97)
 TARGET_MEAN_Z = 0.1
 TARGET_SD_Z = (0.9, 1.1)
 Z95 = 1.959963984540054
+#: 1-sigma of the injected gyro scale-factor asymmetry (K+ - K-)/K per grade (odd plan cycles; effects.md magnitudes)
+ASYMMETRY_SD = {"navigation": 20e-6, "tactical": 300e-6, "consumer": 3e-3}
 
 
 def _plan(name: str, scale: float):
@@ -78,16 +83,19 @@ def _plan(name: str, scale: float):
     return build_plan(name, duration_scale=scale)
 
 
-def _truth(rf, Kg, Eg, bg, G, Ka, Ea, ba, K2, Kc):
+def _truth(rf, Kg, Eg, bg, G, Ka, Ea, ba, K2, Kc, eps=None):
     """Truth for every coefficient row of the three coefficient tables, keyed (sensor, axis, coefficient, fit)."""
     truth = {}
     for i, a in enumerate(AX):
         ax = rf.axis(a)
         tb = bg[i] + (G[i] @ ax.bias_reference_force_mps2 if ax.bias_reference_force_mps2 is not None else 0.0)
-        for c in ("scale_factor", "scale_factor_pos", "scale_factor_neg"):
-            truth[("gyro", a, c, "rate")] = Kg[i]
-        truth[("gyro", a, "sf_asymmetry", "rate")] = 0.0
-        truth[("gyro", a, "bias", "rate")] = tb
+        e = 0.0 if eps is None else eps[i]
+        truth[("gyro", a, "scale_factor", "rate")] = Kg[i]
+        truth[("gyro", a, "scale_factor_pos", "rate")] = Kg[i] * (1 + e / 2)
+        truth[("gyro", a, "scale_factor_neg", "rate")] = Kg[i] * (1 - e / 2)
+        truth[("gyro", a, "sf_asymmetry", "rate")] = e
+        if eps is None:  # with asymmetry the straight-line bias absorbs (eps/2) K |w| averaged with the fit weights
+            truth[("gyro", a, "bias", "rate")] = tb
         truth[("gyro", a, "bias", "static")] = bg[i]
         truth[("accel", a, "scale_factor", "accel")] = Ka[i]
         truth[("accel", a, "bias", "accel")] = ba[i]
@@ -129,18 +137,20 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
                     recs.append(_row(base, "gyro", a, name, "difference", v, s, v - Z95 * s, v + Z95 * s, t))
     for a, mf in (means or {}).items():
         K = truth[("gyro", a, "scale_factor", "rate")]
-        for c, t in (("scale_factor", K), ("scale_factor_pos", K), ("scale_factor_neg", K), ("asymmetry", 0.0)):
+        for c, t in (("scale_factor", K), ("scale_factor_pos", truth[("gyro", a, "scale_factor_pos", "rate")]),
+                     ("scale_factor_neg", truth[("gyro", a, "scale_factor_neg", "rate")]),
+                     ("asymmetry", 1e6 * truth[("gyro", a, "sf_asymmetry", "rate")])):
             co = mf.coefficient(c)
             if co.observable and np.isfinite(co.stderr) and co.stderr > 0:
                 recs.append(_row(base, "gyro", a, c, "means", co.value, co.stderr, co.ci95_low, co.ci95_high, t))
         nl = mf.coefficient("nonlinearity")
         fl = re.search(r"noise floor \(95 %\) ([0-9.eE+-]+) ppm", nl.note)
-        if nl.observable and fl:
+        if nl.observable and fl and not base.get("asymmetry_injected"):
             recs.append(dict(base, sensor="gyro", axis=a, coefficient="nonlinearity_below_floor", fit="means",
                              value=nl.value, stderr=np.nan, truth=0.0, z=np.nan, covered=bool(nl.value <= float(fl.group(1)))))
     for ax in rf.axes:
         sw = ax.sweep
-        if np.isfinite(sw.nonlinearity) and np.isfinite(sw.nonlinearity_floor):
+        if np.isfinite(sw.nonlinearity) and np.isfinite(sw.nonlinearity_floor) and not base.get("asymmetry_injected"):
             # a statistic with a floor: covered = below the 95 % noise floor (truth: linear sensor)
             recs.append(dict(base, sensor="gyro", axis=ax.axis, coefficient="sf_nonlinearity_below_floor",
                              fit="rate", value=sw.nonlinearity, stderr=np.nan, truth=0.0, z=np.nan,
@@ -156,7 +166,9 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     )
     from assets_lib.calibration.rate_fit import fit_gyro_rate
     from assets_lib.calibration.segmentation import segment_run
-    from assets_lib.sim.simulator import example_device, simulate_run
+    from assets_lib.sim.effects import sensor_chain
+    from assets_lib.sim.effects.response import ScaleFactorAsymmetry
+    from assets_lib.sim.simulator import DEFAULT_EFFECTS, example_device, simulate_run
     from raw_schemas.readers import ingest_frames
 
     seed, k, quick = args
@@ -165,9 +177,14 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     rate_plan = rate_names[(k // len(GRADES)) % len(rate_names)]
     pos_plan = pos_names[(k // len(GRADES)) % len(pos_names)]
     dev = example_device(f"MC{seed}-{k:05d}", grade, seed=seed)
+    eps = None
+    if (k // len(GRADES)) % 2 == 1:  # scale-factor asymmetry injected (digital twin effect) in every other cycle
+        eps = ASYMMETRY_SD[grade] * np.random.default_rng([seed, k, 15]).standard_normal(3)
     plates = {}
     for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS))):
-        sim = simulate_run(dev, _plan(name, scales[name]), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m)
+        fx = sensor_chain([ScaleFactorAsymmetry(gyro=tuple(eps))]) if (m == 0 and eps is not None) else DEFAULT_EFFECTS
+        sim = simulate_run(dev, _plan(name, scales[name]), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m,
+                           effects=fx)
         ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
         plates[m] = segment_run(ing.manifest, ing.imu, ing.table).plateaus
     rf = fit_gyro_rate(plates[0])  # stage gyro_rate_fit
@@ -176,8 +193,9 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     g, a = dev.gyro, dev.accel
     truth = _truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
                    np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
-                   np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc))
-    base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan}
+                   np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc), eps)
+    base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan,
+            "asymmetry_injected": eps is not None}
     return score(base, rf, af, gs, truth, rate_means(plates[0]))
 
 
