@@ -150,11 +150,12 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
                              value=nl.value, stderr=np.nan, truth=0.0, z=np.nan, covered=bool(nl.value <= float(fl.group(1)))))
     for ax in rf.axes:
         sw = ax.sweep
-        if np.isfinite(sw.nonlinearity) and np.isfinite(sw.nonlinearity_floor) and not base.get("asymmetry_injected"):
+        nl = float(getattr(sw.nonlinearity, "value", sw.nonlinearity))  # a typed Coefficient or a float
+        if np.isfinite(nl) and np.isfinite(sw.nonlinearity_floor) and not base.get("asymmetry_injected"):
             # a statistic with a floor: covered = below the 95 % noise floor (truth: linear sensor)
             recs.append(dict(base, sensor="gyro", axis=ax.axis, coefficient="sf_nonlinearity_below_floor",
-                             fit="rate", value=sw.nonlinearity, stderr=np.nan, truth=0.0, z=np.nan,
-                             covered=bool(sw.nonlinearity <= sw.nonlinearity_floor)))
+                             fit="rate", value=nl, stderr=np.nan, truth=0.0, z=np.nan,
+                             covered=bool(nl <= sw.nonlinearity_floor)))
     return recs
 
 
