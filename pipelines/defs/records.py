@@ -4,7 +4,7 @@ prev_record_sha256, ...). A blocking check verifies the chain after every materi
 
 Records whose certified content is unchanged are reused verbatim from the device's current version (creation
 time, Dagster run id and bytes kept), so a rerun changes nothing and a new run appends one link
-(assets_lib/records/__init__.py explains the hashing).
+(assets_lib/records/content.py explains the hashing).
 """
 
 
