@@ -23,16 +23,37 @@ from assets_lib.records import (
     StoreView,
     build_device_records,
     canonical_json,
+    certificate_problems,
     chain_problems,
+    coefficient_id,
+    content_differences,
     content_sha256,
     load_record,
     load_records_dir,
+    noise_id,
+    parse_certificate,
     record_file_bytes,
+    round_to_uncertainty,
 )
 from pipelines.storage import VersionedStore
 
 DEVICE = "TAC-007"
 RUNS = ("pc00-rate", "pc01-rate", "pc02-rate")
+#: a second device: a multi-position run whose manifest declares the accelerometer LSB twice its true value
+#: (the scale factor comes out ~2) and a static run (Allan noise terms)
+BAD_DEVICE, BAD_RUN, STATIC_RUN = "TAC-008", "pc00-pos24", "pc00-static"
+
+
+def write_doubled_lsb_run(landing: Path, t0: datetime) -> None:
+    truth = example_device(BAD_DEVICE, "tactical", 12).for_power_cycle(0, 12, 0.0)
+    d = write_run(simulate_run(truth, "quick_24_position", BAD_RUN, start_time_utc=t0, seed=12,
+                               plan_kwargs={"duration_scale": 0.3}), landing)
+    m = json.loads((d / "manifest.json").read_text())
+    for ch in ("accel_x", "accel_y", "accel_z"):
+        m["channels"][ch]["lsb"] *= 2
+    (d / "manifest.json").write_text(json.dumps(m, indent=2) + "\n")
+    write_run(simulate_run(truth, "static_long", STATIC_RUN, start_time_utc=t0 + timedelta(hours=1), seed=12,
+                           table_log=False, plan_kwargs={"static_duration_s": 600.0}), landing)
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +70,7 @@ def lab():
         truth = base.for_power_cycle(c, 11, 7.0 * c)
         write_run(simulate_run(truth, "quick_rate", run_id, power_cycle_index=c, start_time_utc=t0 + timedelta(days=7 * c),
                                seed=11, plan_kwargs={"duration_scale": 0.3}), landing)
+    write_doubled_lsb_run(landing, t0)
     from pipelines.definitions import build_definitions
     from pipelines.launch import execute, open_instance, register_landed_runs
     from pipelines.resources import LabArchive
@@ -82,7 +104,7 @@ def test_records_stored_and_chained(lab):
     assert list(table["prev_record_sha256"].iloc[1:]) == list(table["record_sha256"].iloc[:-1])
     for row in table.itertuples():
         rec = load_record(vdir / f"{row.run_id}.json")
-        assert rec["record_schema_version"] == "1.0"
+        assert rec["record_schema_version"] == "1.1" and rec["content"]["status"] == "valid", rec["content"].get("status_reasons")
         assert rec["record_sha256"] == row.record_sha256 == content_sha256(rec["content"])
         assert rec["provenance"]["dagster_run_id"] in lab["dagster_run_ids"]
         c = rec["content"]
@@ -126,12 +148,54 @@ def test_certificate_html_has_coefficients_and_plots(lab):
     html = (lab["vdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
     rec = load_record(lab["vdir"] / f"{RUNS[1]}.json")
     assert rec["record_sha256"] in html and rec["content"]["prev_record_sha256"] in html
+    cells = {k: v[0] for k, v in parse_certificate(html).cells.items()}
+    assert cells["record_sha256"] == rec["record_sha256"] and cells["record_id"] == f"{DEVICE}/{RUNS[1]}"
     shown = [c for c in rec["content"]["coefficients"] if c["observable"]]
     assert len(shown) >= 12
     for c in shown:
-        assert repr(c["value"]) in html and f"{c['value_lab']:.7g}" in html
+        assert f"coef/{coefficient_id(c)}/value_lab" in cells
     assert re.search(r"<img [^>]*src='data:image/png;base64,iVBORw0KGgo", html)  # an embedded PNG (residuals)
     assert "gyro_rate_fit" in html and "deg/h" in html and "ppm" in html
+    assert "banner valid" in html and "banner invalid" not in html
+
+
+def _significant_digits(text: str) -> int:
+    mant = text.split("e")[0].lstrip("-").replace(".", "").lstrip("0")
+    return len(mant)
+
+
+def _last_digit_exponent(text: str) -> int:
+    mant, _, ex = text.partition("e")
+    decimals = len(mant.split(".")[1]) if "." in mant else 0
+    return (int(ex) if ex else 0) - decimals
+
+
+def test_certificate_values_rounded_to_their_uncertainty(lab):
+    """Issue 10 item 7: the certificate prints each value to the decimal place of its standard uncertainty, the
+    uncertainty to two significant digits (GUM 7.2.6), not 17 digits."""
+    html = (lab["vdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
+    rec = load_record(lab["vdir"] / f"{RUNS[1]}.json")
+    visible = html.split("<script type='application/json'")[0]
+    cells = {k: v[0] for k, v in parse_certificate(html).cells.items()}
+    n = 0
+    for c in rec["content"]["coefficients"]:
+        if not c["observable"]:
+            continue
+        for f, u in (("value_lab", "stderr_lab"), ("value", "stderr")):
+            k = f"coef/{coefficient_id(c)}"
+            shown_v, shown_u = cells[f"{k}/{f}"], cells[f"{k}/{u}"]
+            assert _significant_digits(shown_u) == 2, (k, shown_u)
+            last = _last_digit_exponent(shown_u)
+            assert _last_digit_exponent(shown_v) == last, (k, shown_v, shown_u)
+            assert abs(float(shown_v) - c[f]) <= 0.5000001 * 10.0**last, (k, shown_v, c[f])
+            assert abs(float(shown_u) - c[u]) <= 0.5000001 * 10.0**last, (k, shown_u, c[u])
+            assert repr(c[f]) not in visible
+            n += 1
+    assert n >= 24
+    assert round_to_uncertainty(1.0000123456, 3.4e-6) == ("1.0000123", "0.0000034")
+    assert round_to_uncertainty(2.3012e-6, 1.04e-8) == ("2.301e-06", "0.010e-06")
+    assert round_to_uncertainty(9.996, 0.0996) == ("10.00", "0.10")
+    assert round_to_uncertainty(286.495243, 3.0575) == ("286.5", "3.1")
 
 
 def test_rebuild_reuses_unchanged_records_byte_for_byte(lab):
@@ -247,3 +311,4 @@ def test_chain_check_blocks_on_a_deleted_record(lab, tmp_path):
     chain = [e for e in evals if e.check_name == "record_chain_intact"]
     assert chain and not chain[0].passed
     assert "pc01-rate" in chain[0].metadata["problems"].value
+

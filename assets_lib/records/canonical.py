@@ -1,8 +1,8 @@
 """Canonical JSON of a record and its sha256.
 
-Record (``record_schema_version`` 1.0, JSON Schema in ``raw_schemas/record.schema.json``)::
+Record (``record_schema_version`` 1.1, JSON Schema in ``raw_schemas/record.schema.json``)::
 
-    {"record_schema_version": "1.0",
+    {"record_schema_version": "1.1",
      "record_sha256": sha256(canonical_json(content)),
      "content":    {...everything certified: device, run, test conditions, raw file hashes, coefficients with
                     uncertainties and units, noise terms, stage versions, software, prev_record_sha256},
@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-RECORD_SCHEMA_VERSION = "1.0"
+#: 1.1 adds ``content.status`` ("valid" | "invalid") and ``content.status_reasons``
+RECORD_SCHEMA_VERSION = "1.1"
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "raw_schemas" / "record.schema.json"
 
 

@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from assets_lib.records.canonical import RECORD_SCHEMA_VERSION, canonical_json, content_sha256, to_jsonable
+from assets_lib.records.validity import RecordStatus, record_status, reduced_chi_square
 
 COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit")
 NOISE_SOURCES = ("allan_deviation",)
@@ -38,7 +39,7 @@ PLOT_SOURCES = (*COEFFICIENT_SOURCES, *NOISE_SOURCES)
 COEFFICIENT_FIELDS = ("sensor", "axis", "coefficient", "value", "stderr", "unit", "value_lab", "stderr_lab", "unit_lab",
                       "observable", "n_plateaus", "n_samples", "method")
 RECORDS_TABLE_COLUMNS = ["run_id", "start_time_utc", "test_kind", "record_sha256", "prev_record_sha256",
-                         "n_coefficients", "created_utc", "dagster_run_id"]
+                         "n_coefficients", "status", "status_reasons", "created_utc", "dagster_run_id"]
 
 
 def software_info(source_dir: str | None = None) -> dict:
@@ -149,6 +150,7 @@ def run_content(view: StoreView, key: str, prev_record_sha256: str | None, softw
     steps = manifest.plan.steps
     site = manifest.site
     coefficients = _coefficient_rows(view, key)
+    status = _status(view, key, manifest.device.grade, coefficients)
     return to_jsonable({
         "record_schema_version": RECORD_SCHEMA_VERSION,
         "device": {"id": manifest.device.id, "model": manifest.device.model, "grade": manifest.device.grade,
@@ -176,7 +178,26 @@ def run_content(view: StoreView, key: str, prev_record_sha256: str | None, softw
         "stages": _stage_chain(view, key),
         "software": software,
         "prev_record_sha256": prev_record_sha256,
+        "status": status.status,
+        "status_reasons": list(status.reasons),
     })
+
+
+def _status(view: StoreView, key: str, grade: str, coefficients: list[dict]) -> RecordStatus:
+    """Validity of the record (``assets_lib.records.validity``) from its coefficients, the fits' residuals and the
+    Allan stage's model-inside-interval shares."""
+    chi2 = {}
+    for asset in COEFFICIENT_SOURCES:
+        if view.has_table(asset, "residuals", key):
+            r = view.table(asset, "residuals", key)
+            if "std_residual" in r:
+                chi2[asset] = reduced_chi_square(r["std_residual"].to_numpy(dtype=float),
+                                                 r["excluded"].to_numpy(dtype=bool) if "excluded" in r else None)
+    inside = {}
+    for asset in NOISE_SOURCES:
+        if view.has(asset, key):
+            inside.update(view.meta(asset, key).get("model_inside_ci") or {})
+    return record_status(grade, coefficients, chi2, inside)
 
 
 def make_record(content: dict, created_utc: str, dagster_run_id: str | None) -> dict:
@@ -225,6 +246,8 @@ def records_table(records: list[dict]) -> pd.DataFrame:
         "test_kind": r["content"]["run"]["test_kind"], "record_sha256": r["record_sha256"],
         "prev_record_sha256": r["content"]["prev_record_sha256"],
         "n_coefficients": sum(c["observable"] for c in r["content"]["coefficients"]),
+        "status": r["content"].get("status", "unknown"),
+        "status_reasons": "; ".join(r["content"].get("status_reasons") or []),
         "created_utc": r["provenance"].get("created_utc"), "dagster_run_id": r["provenance"].get("dagster_run_id"),
     } for r in records]
     return pd.DataFrame(rows, columns=RECORDS_TABLE_COLUMNS)
