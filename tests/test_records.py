@@ -312,3 +312,117 @@ def test_chain_check_blocks_on_a_deleted_record(lab, tmp_path):
     assert chain and not chain[0].passed
     assert "pc01-rate" in chain[0].metadata["problems"].value
 
+
+
+# ------------------------------------------------------------------------------- validity, certificates, precision
+def test_doubled_lsb_record_is_marked_invalid(lab):
+    """Issue 10 item 5: a manifest declaring the accelerometer LSB twice its value gives scale factors ~2; the
+    record says it is not a valid calibration (JSON, records.parquet, certificate banner) and verify says so."""
+    st = lab["st"]
+    vdir = st.version_dir("calibration_record", BAD_DEVICE)
+    rec = load_record(vdir / f"{BAD_RUN}.json")
+    c = rec["content"]
+    sf = [x for x in c["coefficients"] if x["sensor"] == "accel" and x["coefficient"] == "scale_factor"]
+    assert len(sf) == 3 and all(1.9 < x["value"] < 2.1 for x in sf)  # the reproduction: K ~ 2
+    assert c["status"] == "invalid"
+    assert len([r for r in c["status_reasons"] if "accel" in r and "scale_factor" in r
+                and "exceeds the tactical envelope" in r]) == 3, c["status_reasons"]
+    table = st.read("calibration_record", BAD_DEVICE, "records").set_index("run_id")
+    assert table.loc[BAD_RUN, "status"] == "invalid" and "scale_factor" in table.loc[BAD_RUN, "status_reasons"]
+    assert table.loc[STATIC_RUN, "status"] == "valid" and table.loc[STATIC_RUN, "status_reasons"] == ""
+    html = (vdir / f"{BAD_RUN}.html").read_text(encoding="utf-8")
+    banner = re.search(r"<div class='banner invalid' role='alert'>(.*?)</div>", html, re.S)
+    assert banner and "NOT A VALID CALIBRATION" in banner.group(1) and "scale_factor" in banner.group(1)
+    assert "banner valid" not in html
+    jsonschema = pytest.importorskip("jsonschema")
+    v = jsonschema.Draft202012Validator(json.loads(SCHEMA_PATH.read_text()))
+    assert list(v.iter_errors(rec)) == []
+    no_reason = json.loads(json.dumps(rec))
+    no_reason["content"]["status_reasons"] = []
+    assert list(v.iter_errors(no_reason))  # invalid without a reason is not a record
+    res = _verify(vdir / f"{BAD_RUN}.json", "--shallow")
+    assert res.exit_code == 0, res.output  # a genuine record of an invalid calibration
+    assert "NOTE this record is marked INVALID" in res.output and "NOT a valid calibration" in res.output
+
+
+def test_certificate_verifies_and_edits_are_detected(lab, tmp_path):
+    """Issue 10 item 6: ``imulab verify CERT.html`` checks the printed values against the record; an edited number,
+    added text or an edited embedded record fails, naming the cell."""
+    cert = lab["vdir"] / f"{RUNS[1]}.html"
+    res = _verify(cert, "--shallow")
+    assert res.exit_code == 0, res.output
+    assert "ok   certificate shows exactly its record" in res.output and "VERIFIED" in res.output
+    html = cert.read_text(encoding="utf-8")
+    rec, problems = certificate_problems(html)
+    assert problems == [] and rec == load_record(lab["vdir"] / f"{RUNS[1]}.json")
+    # one printed number edited (the gyro x scale factor in the lab unit)
+    sf = next(c for c in rec["content"]["coefficients"] if c["sensor"] == "gyro" and c["axis"] == "x"
+              and c["coefficient"] == "scale_factor")
+    key = f"coef/{coefficient_id(sf)}/value_lab"
+    m = re.search(rf"data-k='{re.escape(key)}'>([^<]+)<", html)
+    shown = m.group(1)
+    edited = shown[:-1] + ("1" if shown[-1] != "1" else "2")
+    forged = tmp_path / cert.name
+    forged.write_text(html.replace(m.group(0), m.group(0).replace(shown, edited)), encoding="utf-8")
+    res = _verify(forged, "--shallow")
+    assert res.exit_code == 1, res.output
+    assert f"certificate: {key} shows {edited!r}, the record gives {shown!r}" in res.output
+    # text added outside the value cells
+    forged.write_text(html.replace("<h2>Coefficients</h2>", "<h2>Coefficients</h2><p>Scale factor: 1.000</p>"),
+                      encoding="utf-8")
+    res = _verify(forged, "--shallow")
+    assert res.exit_code == 1 and "differs from the rendering of its record" in res.output
+    # the embedded record edited to match an edited cell: its hash no longer matches
+    text = html.replace(m.group(0), m.group(0).replace(shown, edited))
+    text = text.replace(repr(sf["value_lab"]), repr(sf["value_lab"] + 1e-3))
+    forged.write_text(text, encoding="utf-8")
+    res = _verify(forged, "--shallow")
+    assert res.exit_code == 1 and "the embedded record was edited" in res.output
+
+
+def test_verify_tolerance_follows_each_precision(lab):
+    """Issue 10 item 4: recomputed numbers are compared at their own precision (standard error, interval
+    half-width): a kernel-sized difference (2.5e-8 relative) passes, a hundredth of an uncertainty does not."""
+    vdir = lab["st"].version_dir("calibration_record", BAD_DEVICE)
+    content = load_record(vdir / f"{STATIC_RUN}.json")["content"]
+    noise = [r for r in content["noise"] if not r["is_upper_bound"] and r["value"] is not None]
+    assert noise
+    kernel = json.loads(json.dumps(content))
+    for r in kernel["noise"]:
+        for f in ("value", "ci_lo", "ci_hi", "value_lab", "ci_lo_lab", "ci_hi_lab"):
+            if r[f] is not None:
+                r[f] *= 1 + 2.5e-8
+    assert content_differences(content, kernel) == []
+    assert content_differences(content, kernel, fraction=0.0)  # the old fixed 1e-9 relative rule failed here
+    moved = json.loads(json.dumps(content))
+    r = next(x for x in moved["noise"] if noise_id(x) == noise_id(noise[0]))
+    r["value"] += 0.01 * (r["ci_hi"] - r["ci_lo"]) / 2
+    diffs = content_differences(content, moved)
+    assert len(diffs) == 1 and diffs[0].startswith(f"noise term {noise_id(noise[0])}: value recorded")
+    coef = load_record(lab["vdir"] / f"{RUNS[0]}.json")["content"]
+    small, big = json.loads(json.dumps(coef)), json.loads(json.dumps(coef))
+    small["coefficients"][0]["value"] += 1e-4 * coef["coefficients"][0]["stderr"]
+    big["coefficients"][0]["value"] += 1e-2 * coef["coefficients"][0]["stderr"]
+    assert content_differences(coef, small) == []
+    assert content_differences(coef, big) and "value recorded" in content_differences(coef, big)[0]
+
+
+def test_static_record_verifies_with_the_numpy_kernel(lab, monkeypatch):
+    """Issue 10 item 4: a record computed with the installed Allan kernel verifies when recomputed with the
+    numpy kernel (the optional numba one disabled)."""
+    from assets_lib.noise import allan
+
+    monkeypatch.setattr(allan, "HAVE_NUMBA", False)
+    vdir = lab["st"].version_dir("calibration_record", BAD_DEVICE)
+    res = _verify(vdir / f"{STATIC_RUN}.json", "--shallow")
+    assert res.exit_code == 0, res.output
+    assert "noise terms and all conditions match" in res.output
+
+
+def test_verify_from_another_directory(lab, tmp_path, monkeypatch):
+    """Issue 10 item 7: with no --archive / --store, verify finds the store the record lies in and the archive
+    beside it, whatever the working directory."""
+    monkeypatch.chdir(tmp_path)
+    res = _verify(lab["vdir"] / f"{RUNS[1]}.json")
+    assert res.exit_code == 0, res.output
+    assert f"archive {lab['landing'].resolve()}, store {lab['store'].resolve()}" in res.output
