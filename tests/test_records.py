@@ -11,6 +11,7 @@ import warnings
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -426,3 +427,24 @@ def test_verify_from_another_directory(lab, tmp_path, monkeypatch):
     res = _verify(lab["vdir"] / f"{RUNS[1]}.json")
     assert res.exit_code == 0, res.output
     assert f"archive {lab['landing'].resolve()}, store {lab['store'].resolve()}" in res.output
+
+
+def test_genuine_correlated_noise_run_is_not_marked_invalid():
+    """No false alarm: NAV-001's second multi-position run of the default archive, whose plateau means carry
+    correlated (flicker) noise, is fitted by GLS; its standardized residuals used to mix the whitened chi-square
+    with diagonal weights (|z| ~ 1e150), so the record would have been marked invalid. They are now ~N(0, 1)."""
+    from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+    from assets_lib.calibration.segmentation import segment_run
+    from assets_lib.records.validity import CHI2_BAND, reduced_chi_square
+    from raw_schemas.readers import ingest_frames
+
+    truth = example_device("NAV-001", "navigation", 2026).for_power_cycle(1, 2026, 7.0)
+    run = simulate_run(truth, "quick_24_position", "pc01-pos24", power_cycle_index=1, seed=2026,
+                       start_time_utc=datetime(2026, 1, 12, 9, tzinfo=timezone.utc))
+    ing = ingest_frames(run.manifest, run.imu_raw, run.table_raw)
+    p = segment_run(run.manifest, ing.imu, ing.table).plateaus
+    resid = pd.concat([fit_accel_multiposition(p).residual_table(), fit_gyro_static(p).residual_table()])
+    z = resid.loc[~resid["excluded"].astype(bool), "std_residual"].to_numpy(float)
+    assert np.nanmax(np.abs(z)) < 10
+    chi2 = reduced_chi_square(resid["std_residual"].to_numpy(float), resid["excluded"].to_numpy(bool))
+    assert CHI2_BAND[0] < chi2 < CHI2_BAND[1]
