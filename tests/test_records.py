@@ -448,3 +448,14 @@ def test_genuine_correlated_noise_run_is_not_marked_invalid():
     assert np.nanmax(np.abs(z)) < 10
     chi2 = reduced_chi_square(resid["std_residual"].to_numpy(float), resid["excluded"].to_numpy(bool))
     assert CHI2_BAND[0] < chi2 < CHI2_BAND[1]
+
+
+def test_record_of_an_earlier_schema_version_is_compared_on_what_it_certifies(lab):
+    """A 1.0 record (before status existed) is compared without the fields 1.1 added; its numbers still count."""
+    c = load_record(lab["vdir"] / f"{RUNS[0]}.json")["content"]
+    old = {k: v for k, v in c.items() if k not in ("status", "status_reasons")}
+    old["record_schema_version"] = "1.0"
+    assert content_differences(old, c) == []
+    old["coefficients"] = json.loads(json.dumps(old["coefficients"]))
+    old["coefficients"][0]["value"] += old["coefficients"][0]["stderr"]
+    assert len(content_differences(old, c)) == 1

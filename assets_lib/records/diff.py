@@ -21,6 +21,8 @@ PRECISION_FRACTION = 1e-3
 COEFFICIENT_NUMBERS = (("value", "stderr"), ("stderr", "stderr"), ("value_lab", "stderr_lab"),
                        ("stderr_lab", "stderr_lab"))
 NOISE_NUMBERS = ("value", "ci_lo", "ci_hi")
+#: content fields a record schema version added: a record of an earlier version is compared without them
+ADDED_IN = {"1.1": ("status", "status_reasons")}
 
 
 def _num(x) -> bool:
@@ -140,7 +142,11 @@ def content_differences(recorded: dict, recomputed: dict, rtol: float = FLOAT_RT
                                     {coefficient_id(c): c for c in recomputed.get("coefficients", [])}, rtol, fraction)
     out += _noise_differences({noise_id(r): r for r in recorded.get("noise") or []},
                               {noise_id(r): r for r in recomputed.get("noise") or []}, rtol, fraction)
-    skip = ("raw_files", "coefficients", "noise", "software", "prev_record_sha256")
+    skip = ["raw_files", "coefficients", "noise", "software", "prev_record_sha256"]
+    version = recorded.get("record_schema_version")
+    if version != recomputed.get("record_schema_version"):  # an older record: compare what it certifies
+        skip.append("record_schema_version")
+        skip += [f for v, fields in ADDED_IN.items() if str(version) < v for f in fields]
     _diff("content", {k: v for k, v in recorded.items() if k not in skip},
           {k: v for k, v in recomputed.items() if k not in skip}, out, rtol)
     return out
