@@ -459,3 +459,21 @@ def test_record_of_an_earlier_schema_version_is_compared_on_what_it_certifies(la
     old["coefficients"] = json.loads(json.dumps(old["coefficients"]))
     old["coefficients"][0]["value"] += old["coefficients"][0]["stderr"]
     assert len(content_differences(old, c)) == 1
+
+
+def test_invalid_record_is_never_used_as_a_calibration(lab):
+    """Issue 10 item 5: an invalid record is refused by ``calibration_from_record`` (``imulab apply``) and skipped,
+    with a warning, when a device calibration is looked up at a date (``imulab records``)."""
+    from assets_lib.apply.model import CalibrationError, calibration_from_record
+    from assets_lib.records.lookup import lookup
+
+    vdir = lab["st"].version_dir("calibration_record", BAD_DEVICE)
+    bad = load_record(vdir / f"{BAD_RUN}.json")
+    with pytest.raises(CalibrationError, match="marked invalid, not a valid calibration: .*scale_factor"):
+        calibration_from_record(bad)
+    res = lookup(lab["store"], BAD_DEVICE, "2026-03-01T00:00:00Z")
+    assert res.valid_run_id == STATIC_RUN
+    assert bad["record_sha256"] not in {t.record_sha256 for t in res.calibration.terms}
+    assert "accel" in res.calibration.missing_groups
+    assert any(w.startswith(f"record {BAD_RUN} is marked invalid and not used") for w in res.warnings)
+    assert dict(zip(res.table["run_id"], res.table["status"])) == {BAD_RUN: "invalid", STATIC_RUN: "valid"}
