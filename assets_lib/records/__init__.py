@@ -1,4 +1,4 @@
-"""Audited calibration records (pure: no store, no Dagster): canonical hashing, record content, chain checks, diffs, certificates."""
+"""Audited calibration records (no Dagster): canonical hashing, content and validity, chain checks, diffs, certificates, look-up, export."""
 
 from assets_lib.records.canonical import (
     RECORD_SCHEMA_VERSION,
