@@ -3,10 +3,10 @@
 - ``open_instance``: the persistent SQLite instance in a Dagster home, created (``dagster.yaml`` and every
   storage's schema) under an exclusive file lock, so two processes starting on a new folder cannot both create
   the schema (two alembic heads break the instance for good).
-- ``acquire_run_lock`` / ``run_lock``: an exclusive lock on the Dagster home and the store for a whole ``imulab run``: a second run waits
-  for the first (printing who holds the lock) or, past its timeout, refuses with a clear message. Locks are
-  ``flock`` locks (``filelock``): the kernel releases them when the holder dies, so a killed run never leaves a
-  stale lock.
+- ``acquire_run_lock`` / ``run_lock``: an exclusive lock on the Dagster home and the store for a whole
+  ``imulab run``: a second run waits for the first (printing who holds the lock) or, past its timeout, refuses
+  with a clear message. Locks are ``flock`` locks (``filelock``): the kernel releases them when the holder dies,
+  so a killed run never leaves a stale lock.
 - ``fail_abandoned_runs``: runs launched in process by imulab whose process is gone (killed) stay STARTED in
   Dagster forever; at the next start, holding the lock, they are marked failed with the reason.
 - ``note_archive`` / ``recorded_archive``: the store remembers the archive it was computed from (``ARCHIVE``), so

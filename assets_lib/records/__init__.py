@@ -1,4 +1,4 @@
-"""Audited calibration records (no Dagster): canonical hashing, content and validity, chain checks, diffs, certificates, look-up, export."""
+"""Calibration records (no Dagster): hashing, content, validity, chain, diffs, certificates, look-up, export."""
 
 from assets_lib.records.canonical import (
     RECORD_SCHEMA_VERSION,
@@ -38,7 +38,8 @@ from assets_lib.records.diff import FLOAT_RTOL, PRECISION_FRACTION, coefficient_
 from assets_lib.records.validity import CHI2_BAND, MODEL_INSIDE_CI_MIN, RecordStatus, record_status
 
 __all__ = [
-    "CERTIFICATE_FORMAT", "CHI2_BAND", "MODEL_INSIDE_CI_MIN", "PRECISION_FRACTION", "RecordStatus", "certificate_problems",
+    "CERTIFICATE_FORMAT", "CHI2_BAND", "MODEL_INSIDE_CI_MIN", "PRECISION_FRACTION", "RecordStatus",
+    "certificate_problems",
     "certified_cells", "noise_id", "parse_certificate", "record_status", "round_to_uncertainty",
     "COEFFICIENT_SOURCES", "FLOAT_RTOL", "NOISE_SOURCES", "PLOT_SOURCES", "RECORDS_TABLE_COLUMNS",
     "RECORD_SCHEMA_VERSION", "SCHEMA_PATH", "StoreView", "build_device_records", "canonical_json", "certificate_html",
