@@ -30,8 +30,8 @@ from assets_lib.records import (
     FLOAT_RTOL,
     PRECISION_FRACTION,
     SCHEMA_PATH,
-    certificate_problems,
     StoreView,
+    certificate_problems,
     chain_problems,
     content_differences,
     load_record,
@@ -181,7 +181,10 @@ def locate_workspace(record_path: Path, landing, store_dir, data_dir) -> tuple[P
     rp = Path(record_path).resolve()
     in_store = (rp.parent / "records.parquet").is_file() and len(rp.parents) > 3 \
         and rp.parents[2].name == "calibration_record"
-    store = Path(store_dir).resolve() if store_dir else rp.parents[3] if in_store else (Path(data_dir) / "store").resolve()
+    if store_dir:
+        store = Path(store_dir).resolve()
+    else:
+        store = rp.parents[3] if in_store else (Path(data_dir) / "store").resolve()
     if landing:
         return Path(landing).resolve(), store
     from pipelines.instance import recorded_archive
