@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEGPH = np.pi / 180.0 / 3600.0
-MG = 9.80665e-3
+from raw_schemas.units import DEGPH_TO_RADPS as DEGPH, MG_TO_MPS2 as MG
 
 
 @dataclass(frozen=True)

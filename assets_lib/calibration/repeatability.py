@@ -19,7 +19,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from assets_lib.calibration.fit_report import units_of
+from assets_lib.coefficient import Coefficient
+from raw_schemas.units import lab_unit
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,11 @@ class Repeatability:
     within_run_stderr_rms: float  # RMS of the per-run standard errors (NaN if not given)
     std_noise_corrected: float
     relative: bool
+
+    def estimate(self, unit: str) -> Coefficient:
+        """The repeatability as a :class:`Coefficient` with its chi-square interval at ``confidence``."""
+        return Coefficient(self.std, self.std_stderr, unit, bool(np.isfinite(self.std)), self.ci_low, self.ci_high,
+                           self.confidence)
 
 
 def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95) -> Repeatability:
@@ -91,13 +97,15 @@ def repeatability_table(coefficients: pd.DataFrame, *, confidence: float = 0.95)
         rel = coef == "scale_factor"
         r = repeatability(g["value"], g["stderr"], relative=rel, confidence=confidence)
         name = "scale_factor_repeatability" if rel else "bias_repeatability"
-        unit, unit_lab, fac, _ = units_of(sensor, name)
+        lab = lab_unit(sensor, name)
+        est = r.estimate(lab.si)
+        in_lab = est.to_lab(lab)
         rows.append(dict(
             device_id=dev, sensor=sensor, axis=axis, coefficient=name, method=method, n_runs=r.n_runs,
             run_ids=",".join(map(str, g["run_id"])), value=r.std, stderr=r.std_stderr, ci_low=r.ci_low,
-            ci_high=r.ci_high, confidence=confidence, unit=unit, value_lab=fac * r.std, stderr_lab=fac * r.std_stderr,
-            ci_low_lab=fac * r.ci_low, ci_high_lab=fac * r.ci_high, unit_lab=unit_lab,
+            ci_high=r.ci_high, confidence=confidence, unit=lab.si, value_lab=lab.to_lab(r.std),
+            stderr_lab=in_lab.stderr, ci_low_lab=in_lab.ci_low, ci_high_lab=in_lab.ci_high, unit_lab=lab.lab,
             within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,
-            value_noise_corrected_lab=fac * r.std_noise_corrected,
+            value_noise_corrected_lab=lab.to_lab(r.std_noise_corrected),
         ))
     return pd.DataFrame(rows, columns=REPEATABILITY_COLUMNS)

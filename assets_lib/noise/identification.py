@@ -30,45 +30,15 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
+from assets_lib.coefficient import Coefficient
 from assets_lib.noise.allan import AllanResult
 from assets_lib.noise.intervals import edf_greenhall
+from raw_schemas.units import lab_unit
 
 LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
 TERMS = ("Q", "N", "B", "K", "R")
 #: local log-log slope of sigma^2 for each term (alpha = -slope - 1 for the EDF)
 _TERM_ALPHA = {"Q": 2.0, "N": 0.0, "B": -1.0, "K": -2.0, "R": -2.0, "M": 0.0, "S": 0.0}
-
-RAD2DEG = 180.0 / math.pi
-G0 = 9.80665
-
-#: SI unit and (lab unit, factor SI -> lab) per sensor and parameter
-UNITS = {
-    "gyro": {
-        "Q": ("rad", "arcsec", RAD2DEG * 3600.0),
-        "N": ("rad/s/sqrt(Hz)", "deg/sqrt(h)", RAD2DEG * 60.0),
-        "B": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "K": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "R": ("rad/s^2", "deg/h/h", RAD2DEG * 3600.0**2),
-        "markov_q": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-    "accel": {
-        "Q": ("m/s", "m/s", 1.0),
-        "N": ("m/s^2/sqrt(Hz)", "m/s/sqrt(h)", 60.0),
-        "B": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "K": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "R": ("m/s^3", "m/s/h^2", 3600.0**2),
-        "markov_q": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-}
-UNITS["si"] = {k: (v[0], v[0], 1.0) for k, v in UNITS["gyro"].items()}
-UNITS["si"].update({k: ("", "", 1.0) for k in ("Q", "N", "B", "K", "R")})
-
 
 def sensor_of(channel: str = "", unit: str = "") -> str:
     """'gyro' | 'accel' | 'si' from a channel name (gyro_*, accel_*) or an SI unit string."""
@@ -184,20 +154,41 @@ def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarr
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NoiseParameter:
-    """One noise coefficient: SI value with interval, the same in lab units, method and upper-bound flag."""
+    """One noise term: its SI :class:`Coefficient` (interval at ``ci_level``), method and upper-bound flag.
+
+    ``estimate.value`` is NaN when the term is only bounded (``is_upper_bound``; ``ci_hi`` is the bound);
+    ``estimate.stderr`` is the delta-method standard error of a fitted term (NaN for slope reads and bounds).
+    Lab units come from the one lab-unit table, ``raw_schemas.units.lab_unit``.
+    """
 
     name: str
-    value: float  #: SI; NaN when the term is only bounded (is_upper_bound)
-    ci_lo: float
-    ci_hi: float  #: the upper bound when is_upper_bound
-    unit: str
-    value_lab: float
-    ci_lo_lab: float
-    ci_hi_lab: float
-    unit_lab: str
+    estimate: Coefficient
+    sensor: str  #: 'gyro' | 'accel' | 'si' (selects the lab units)
     method: str  #: 'fit' | 'slope'
     is_upper_bound: bool
-    ci_level: float = 0.95
+
+    value = property(lambda self: self.estimate.value)
+    ci_lo = property(lambda self: self.estimate.ci_low)
+    ci_hi = property(lambda self: self.estimate.ci_high)
+    unit = property(lambda self: self.estimate.unit)
+    ci_level = property(lambda self: self.estimate.ci_level)
+
+    @property
+    def lab(self) -> Coefficient:
+        return self.estimate.to_lab(lab_unit(self.sensor, self.name))
+
+    value_lab = property(lambda self: self.lab.value)
+    ci_lo_lab = property(lambda self: self.lab.ci_low)
+    ci_hi_lab = property(lambda self: self.lab.ci_high)
+    unit_lab = property(lambda self: self.lab.unit)
+
+    def as_dict(self) -> dict:
+        """Flat record (the NOISE TABLE columns but the channel, plus the standard error)."""
+        lab = self.lab
+        return {"name": self.name, "value": self.value, "stderr": self.estimate.stderr, "ci_lo": self.ci_lo,
+                "ci_hi": self.ci_hi, "unit": self.unit, "value_lab": lab.value, "ci_lo_lab": lab.ci_low,
+                "ci_hi_lab": lab.ci_high, "unit_lab": lab.unit, "method": self.method,
+                "is_upper_bound": self.is_upper_bound, "ci_level": self.ci_level}
 
 
 @dataclass(frozen=True)
@@ -243,22 +234,10 @@ class NoiseFit:
         raise KeyError(name)
 
 
-def _param(name, value, lo, hi, sensor, method, upper, ci_level) -> NoiseParameter:
-    unit, unit_lab, f = UNITS[sensor][name]
-    return NoiseParameter(
-        name=name,
-        value=float(value),
-        ci_lo=float(lo),
-        ci_hi=float(hi),
-        unit=unit,
-        value_lab=float(value) * f,
-        ci_lo_lab=float(lo) * f,
-        ci_hi_lab=float(hi) * f,
-        unit_lab=unit_lab,
-        method=method,
-        is_upper_bound=bool(upper),
-        ci_level=float(ci_level),
-    )
+def _param(name, value, lo, hi, sensor, method, upper, ci_level, stderr=math.nan) -> NoiseParameter:
+    est = Coefficient(float(value), float(stderr), lab_unit(sensor, name).si, not upper, float(lo), float(hi),
+                      float(ci_level))
+    return NoiseParameter(name=name, estimate=est, sensor=sensor, method=method, is_upper_bound=bool(upper))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -383,6 +362,8 @@ def fit_noise(
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
+            # delta method: d sqrt(theta) = d theta / (2 sqrt(theta)) (Markov: also / T_c)
+            se = _theta_to_param(t, th, tc) * sd / (2.0 * th)
             params.append(
                 _param(
                     name,
@@ -393,6 +374,7 @@ def fit_noise(
                     "fit",
                     False,
                     ci_level,
+                    se,
                 )
             )
     if markov:

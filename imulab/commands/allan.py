@@ -229,7 +229,7 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
             if c in fits:
                 f = fits[c]
                 entry["noise"] = [
-                    _jsonable({k: getattr(p, k) for k in p.__dataclass_fields__})
+                    _jsonable(p.as_dict())
                     for p in list(f.parameters) + list(f.slope_parameters)
                 ]
                 entry["fit"] = {"terms": list(f.terms), "theta": _jsonable(f.theta),
