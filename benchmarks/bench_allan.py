@@ -76,13 +76,13 @@ method = cfg['method']
 def warm(al, backend):
     # compile / load every kernel outside the measurement (window, chain, spill block)
     small = np.cumsum(np.random.default_rng(0).standard_normal(200_000))
-    saved = (al.M_CHAIN, al.SMALL_SPAN)
-    al.M_CHAIN, al.SMALL_SPAN = 1 << 10, 1 << 12
+    saved = (al.kernels.M_CHAIN, al.streaming.SMALL_SPAN)
+    al.kernels.M_CHAIN, al.streaming.SMALL_SPAN = 1 << 10, 1 << 12
     try:
         al.oadev(small, 100.0, 'dense', backend=backend, alpha=0)
         al.allan_stream_array(small, 100.0, 'dense', backend=backend, alpha=0)
     finally:
-        al.M_CHAIN, al.SMALL_SPAN = saved
+        al.kernels.M_CHAIN, al.streaming.SMALL_SPAN = saved
 
 if method in ('allantools', 'imulab', 'imulab_numpy'):
     y = make(n, 1)

@@ -332,7 +332,7 @@ def test_float64_no_mean_bias_with_large_offset():
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("data_type", ["rate", "angle"])
 def test_streaming_parquet_identical_to_in_memory(tmp_path, monkeypatch, backend, data_type):
-    monkeypatch.setattr(al, "SMALL_SPAN", 1 << 18)  # force the cursor route for the larger taus
+    monkeypatch.setattr(al.streaming, "SMALL_SPAN", 1 << 18)  # force the cursor route for the larger taus
     n = 1_200_000  # two streaming blocks
     y = _series(n, seed=11)
     if data_type == "angle":
@@ -343,14 +343,14 @@ def test_streaming_parquet_identical_to_in_memory(tmp_path, monkeypatch, backend
     out = al.allan_parquet(path, 100.0, ["gyro_x", "gyro_y"], 40, data_type=data_type, backend=backend)
     mem = al.oadev(y, 100.0, 40, data_type=data_type, backend=backend)
     mem32 = al.oadev(y.astype(np.float32), 100.0, 40, data_type=data_type, backend=backend)
-    assert np.any(2 * mem.m > al.SMALL_SPAN) and np.any(2 * mem.m <= al.SMALL_SPAN)
+    assert np.any(2 * mem.m > al.streaming.SMALL_SPAN) and np.any(2 * mem.m <= al.streaming.SMALL_SPAN)
     np.testing.assert_array_equal(out["gyro_x"].adev, mem.adev)
     np.testing.assert_array_equal(out["gyro_x"].edf, mem.edf)
     np.testing.assert_array_equal(out["gyro_y"].adev, mem32.adev)
 
 
 def test_stream_engine_on_array_identical(monkeypatch):
-    monkeypatch.setattr(al, "SMALL_SPAN", 1 << 12)
+    monkeypatch.setattr(al.streaming, "SMALL_SPAN", 1 << 12)
     y = _series(1_300_000, seed=2)
     a = al.allan_stream_array(y, 10.0, "octave")
     b = al.oadev(y, 10.0, "octave")
