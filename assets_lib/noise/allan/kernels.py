@@ -30,11 +30,12 @@ SUM_BLOCK = 1 << 15
 #: taus with m >= M_CHAIN use the chain-ordered block partition (one memory stream per tau)
 M_CHAIN = 1 << 16
 
+
 def block_sum(b: np.ndarray) -> float:
     """Sequential sum of the sums of SUM_BLOCK pieces of a contiguous float64 block (the canonical order).
 
-    Each piece is summed by numba's vectorised loop when numba is present, else by numpy's pairwise sum; every
-    route of one installation uses the same function, so the mean is bit-identical across routes.
+    Each piece is summed in numpy's pairwise order (``np.add.reduce`` of a contiguous float64 array); the numba
+    loop reproduces that order operation for operation, so the mean has the same bits with either kernel.
     """
     if HAVE_NUMBA:
         return float(_nb_block_sum(b, SUM_BLOCK))
@@ -112,7 +113,8 @@ def single_thread_blas():
 
 
 class _NumpyKernel:
-    """numpy blockwise kernel: second differences into a preallocated, 64-byte aligned buffer, then a dot."""
+    """numpy blockwise kernel: second differences into a preallocated, 64-byte aligned buffer, squared in place,
+    then summed by ``np.add.reduce`` (numpy's pairwise order; not a BLAS dot, whose order depends on the CPU)."""
 
     name = "numpy"
 
@@ -127,7 +129,8 @@ class _NumpyKernel:
         np.subtract(x2, x1, out=D)
         np.subtract(x1, x0, out=T)
         np.subtract(D, T, out=D)
-        return float(np.dot(D, D))
+        np.multiply(D, D, out=D)
+        return float(np.add.reduce(D))
 
     def window(self, x, base, ms, n_terms, chain, next_a, acc, avail_end):
         """Every complete i-block of each tau whose phase window lies in x[base, avail_end), in increasing i."""
@@ -150,7 +153,8 @@ class _NumpyKernel:
                 if m <= B:  # S = x[i+m] - x[i] once, D = S[i+m] - S[i]: the same floating-point values
                     np.subtract(x[lo + m : lo + L + 2 * m], x[lo : lo + L + m], out=S[: L + m])
                     np.subtract(S[m : m + L], S[:L], out=D[:L])
-                    s += float(np.dot(D[:L], D[:L]))
+                    np.multiply(D[:L], D[:L], out=D[:L])
+                    s += float(np.add.reduce(D[:L]))
                 else:
                     s += self._block(x[lo : lo + L], x[lo + m : lo + L + m], x[lo + 2 * m : lo + L + 2 * m])
                 a = b
@@ -189,18 +193,80 @@ def ordered_sum(P: np.ndarray, m: int, n: int) -> float:
 
 
 if HAVE_NUMBA:
-    _FM = {"reassoc", "contract"}  # reassociation only for the reduction; no finite-math assumptions
-
-    @_numba.njit(fastmath=_FM, boundscheck=False, cache=True)
-    def _nb_ssq(x0, x1, x2):  # pragma: no cover - compiled
-        s = 0.0
-        for i in range(x0.shape[0]):
-            d = (x2[i] - x1[i]) - (x1[i] - x0[i])
-            s += d * d
-        return s
+    # No fastmath anywhere: every sum below is numpy's pairwise summation (numpy/_core/src/umath/loops_utils.h.src,
+    # pairwise_sum: < 8 terms sequentially; <= 128 terms in eight interleaved accumulators combined as
+    # ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7)) plus the remainder; else split at n/2 rounded down to a
+    # multiple of 8), term by term, so numba and numpy return identical bits (tests/test_allan.py checks it).
+    # Squares are written to a block buffer first (a vectorised loop), as the numpy kernel does.
 
     @_numba.njit(boundscheck=False, cache=True)
-    def _nb_window(x, base, ms, n_terms, chain, next_a, acc, avail_end, B):  # pragma: no cover - compiled
+    def _nb_leaf_sum(b, lo, n):  # pragma: no cover - compiled
+        """One leaf of numpy's pairwise sum (n <= 128 terms)."""
+        if n < 8:
+            res = 0.0
+            for i in range(lo, lo + n):
+                res += b[i]
+            return res
+        r0, r1, r2, r3 = b[lo], b[lo + 1], b[lo + 2], b[lo + 3]
+        r4, r5, r6, r7 = b[lo + 4], b[lo + 5], b[lo + 6], b[lo + 7]
+        i = lo + 8
+        top = lo + n - (n % 8)
+        while i < top:
+            r0 += b[i]
+            r1 += b[i + 1]
+            r2 += b[i + 2]
+            r3 += b[i + 3]
+            r4 += b[i + 4]
+            r5 += b[i + 5]
+            r6 += b[i + 6]
+            r7 += b[i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < lo + n:
+            res += b[i]
+            i += 1
+        return res
+
+    @_numba.njit(boundscheck=False, cache=True)
+    def _nb_pairwise_sum(b, lo, n):  # pragma: no cover - compiled
+        """``np.add.reduce(b[lo:lo + n])``: numpy's pairwise tree without recursion (post-order, explicit stack;
+        leaves of <= 128 terms, each node split at n/2 rounded down to a multiple of 8, combined left + right)."""
+        s_lo = np.empty(64, np.int64)
+        s_n = np.empty(64, np.int64)
+        s_join = np.empty(64, np.bool_)
+        vals = np.empty(64)
+        s_lo[0], s_n[0], s_join[0] = lo, n, False
+        top = 1
+        vtop = 0
+        while top > 0:
+            top -= 1
+            a, m, join = s_lo[top], s_n[top], s_join[top]
+            if join:
+                vals[vtop - 2] = vals[vtop - 2] + vals[vtop - 1]
+                vtop -= 1
+            elif m <= 128:
+                vals[vtop] = _nb_leaf_sum(b, a, m)
+                vtop += 1
+            else:
+                m2 = m // 2
+                m2 -= m2 % 8
+                s_lo[top], s_n[top], s_join[top] = a, m, True
+                s_lo[top + 1], s_n[top + 1], s_join[top + 1] = a + m2, m - m2, False
+                s_lo[top + 2], s_n[top + 2], s_join[top + 2] = a, m2, False
+                top += 3
+        return 0.0 + vals[0]  # np.add.reduce starts from the identity 0.0
+
+    @_numba.njit(boundscheck=False, cache=True)
+    def _nb_ssq(x0, x1, x2, buf):  # pragma: no cover - compiled
+        """sum of ((x2 - x1) - (x1 - x0))^2 in numpy's order: squares into ``buf``, then the pairwise sum."""
+        n = x0.shape[0]
+        for i in range(n):
+            d = (x2[i] - x1[i]) - (x1[i] - x0[i])
+            buf[i] = d * d
+        return _nb_pairwise_sum(buf, 0, n)
+
+    @_numba.njit(boundscheck=False, cache=True)
+    def _nb_window(x, base, ms, n_terms, chain, next_a, acc, avail_end, B, buf):  # pragma: no cover - compiled
         for j in range(ms.shape[0]):
             m = ms[j]
             nt = n_terms[j]
@@ -214,13 +280,13 @@ if HAVE_NUMBA:
                     break
                 lo = a - base
                 hi = b - base
-                s += _nb_ssq(x[lo:hi], x[lo + m : hi + m], x[lo + 2 * m : hi + 2 * m])
+                s += _nb_ssq(x[lo:hi], x[lo + m : hi + m], x[lo + 2 * m : hi + 2 * m], buf)
                 a = b
             acc[j] = s
             next_a[j] = a
 
     @_numba.njit(boundscheck=False, cache=True)
-    def _nb_chain(x, m, n, B):  # pragma: no cover - compiled
+    def _nb_chain(x, m, n, B, buf):  # pragma: no cover - compiled
         R = (m + B - 1) // B
         J = (n + m - 1) // m
         P = np.zeros((J, R))
@@ -231,7 +297,7 @@ if HAVE_NUMBA:
                 if i0 >= n:
                     break
                 i1 = min(jj * m + min(r + B, m), n)
-                P[jj, rb] = _nb_ssq(x[i0:i1], x[i0 + m : i1 + m], x[i0 + 2 * m : i1 + 2 * m])
+                P[jj, rb] = _nb_ssq(x[i0:i1], x[i0 + m : i1 + m], x[i0 + 2 * m : i1 + 2 * m], buf)
         s = 0.0
         for jj in range(J):
             for rb in range(R):
@@ -240,21 +306,10 @@ if HAVE_NUMBA:
         return s
 
     @_numba.njit(boundscheck=False, cache=True)
-    def _nb_block(x0, x1, x2):  # pragma: no cover - compiled
-        return _nb_ssq(x0, x1, x2)
-
-    @_numba.njit(fastmath=_FM, boundscheck=False, cache=True)
-    def _nb_piece_sum(b):  # pragma: no cover - compiled
-        s = 0.0
-        for k in range(b.shape[0]):
-            s += b[k]
-        return s
-
-    @_numba.njit(boundscheck=False, cache=True)
     def _nb_block_sum(b, piece):  # pragma: no cover - compiled
         t = 0.0
         for a in range(0, b.shape[0], piece):
-            t += _nb_piece_sum(b[a : min(a + piece, b.shape[0])])
+            t += _nb_pairwise_sum(b, a, min(piece, b.shape[0] - a))
         return t
 
     @_numba.njit(boundscheck=False, cache=True)
@@ -267,18 +322,23 @@ if HAVE_NUMBA:
 
 
 class _NumbaKernel:
-    """Compiled fused kernel (numba): the same block partition and accumulation order as the numpy kernel."""
+    """Compiled kernel (numba): the same block partition and the same summation order as the numpy kernel,
+    term by term, hence the same bits; faster (no Python loop per block, no temporaries but one buffer)."""
 
     name = "numba"
 
+    def __init__(self):
+        self.buf = aligned_empty(KERNEL_BLOCK)
+
     def window(self, x, base, ms, n_terms, chain, next_a, acc, avail_end):
-        _nb_window(x, np.int64(base), ms, n_terms, chain, next_a, acc, np.int64(avail_end), np.int64(KERNEL_BLOCK))
+        _nb_window(x, np.int64(base), ms, n_terms, chain, next_a, acc, np.int64(avail_end), np.int64(KERNEL_BLOCK),
+                   self.buf)
 
     def chain(self, x, m, n):
-        return float(_nb_chain(x, np.int64(m), np.int64(n), np.int64(KERNEL_BLOCK)))
+        return float(_nb_chain(x, np.int64(m), np.int64(n), np.int64(KERNEL_BLOCK), self.buf))
 
     def block(self, x0, x1, x2) -> float:
-        return float(_nb_block(x0, x1, x2))
+        return float(_nb_ssq(x0, x1, x2, self.buf))
 
 
 def get_kernel(backend: str):
