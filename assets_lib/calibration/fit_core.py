@@ -1,6 +1,6 @@
 """Weighted least squares with identifiability analysis, automatic exclusions and honest covariance.
 
-The engine behind every calibration fit (gyro rate fit, accelerometer multi-position fit, the seed 001
+The engine behind every calibration fit (gyro rate fit, accelerometer multi-position fit, the [SEED001]
 plateau-mean fits). Pure numpy/scipy.
 
 Identifiability (which coefficients a schedule observes)
@@ -22,9 +22,9 @@ Identifiability (which coefficients a schedule observes)
 
 Exclusions
     Rows may be pre-excluded (segmentation flags, saturation). Then, iteratively, the externally studentized
-    residual (leave-one-out, Belsley-Kuh-Welsch) of every testable row is compared with the Bonferroni
+    residual (leave-one-out, [BELSLEY1980]) of every testable row is compared with the Bonferroni
     critical value t_{1 - alpha / (2 n)}(dof - 1), alpha = 0.01 family-wise; the worst row beyond it is excluded and the fit repeated,
-    at most ``max_exclusion_fraction`` of the rows (Cook & Weisberg 1982, sec. 2.2.1: Bonferroni outlier test).
+    at most ``max_exclusion_fraction`` of the rows ([COOK1982], sec. 2.2.1: Bonferroni outlier test).
     The scale of the test is the residual scatter, not the plateau standard errors, so a genuine smooth
     nonlinearity (systematic residuals everywhere) does not turn the end plateaus into "outliers".
 
@@ -42,13 +42,13 @@ Covariance (``cov_policy``)
     the two sources of information about it ("pooled"): the sems' own absolute level, treated as a prior
     estimate phi = 1 worth nu_0 = 4 degrees of freedom, and the residual chi-square with nu = n - p:
     phi = (nu_0 + chi^2) / (nu_0 + nu), intervals Student-t with nu_0 + nu dof (the conjugate scaled-inverse-
-    chi^2 update; GUM 4.2 / G.4 Type A with effective degrees of freedom). Why not the sems alone: they describe
+    chi^2 update; [GUM] 4.2 / G.4 Type A with effective degrees of freedom). Why not the sems alone: they describe
     the noise *within* a plateau (segmentation's Allan-based sem), not what varies *between* plateaus over a
     run (bias instability and rate random walk across minutes, table and fixture errors, temperature), and an
     underestimate of 15-30 % costs 2-3 points of coverage. Why not the scatter alone: with few dof (a 6-position
     plan has one) it is too noisy, and nu_0 = 4 (~ +/-35 % on sigma) keeps it in check. Why not "the larger of
     the two": it over-covers (~96.5 % at nu = 17) when the sems are right. A chi-square consistency test
-    (p < 0.001) adds a warning naming the likely causes (Cox 2002, Metrologia 39:589). Without sems, ordinary
+    (p < 0.001) adds a warning naming the likely causes ([COX2002]). Without sems, ordinary
     least squares with phi = RSS/nu and Student-t(nu) intervals ("residual").
 """
 
@@ -66,7 +66,7 @@ DEFAULT_SEM_PRIOR_DOF = 4.0  # degrees of freedom given to the plateau sems' abs
 
 @dataclass(frozen=True, eq=False)
 class Identifiability:
-    """Seed 003 eq. 3 pre-check: which columns of x = (A^T A)^-1 A^T b the schedule determines."""
+    """[SEED003] eq. 3 pre-check: which columns of x = (A^T A)^-1 A^T b the schedule determines."""
 
     observable: np.ndarray  # (p,) bool
     excitation: np.ndarray  # (p,) RMS orthogonal excitation in full-scale units
@@ -262,7 +262,7 @@ def fit_linear(
     times: tuple[np.ndarray, np.ndarray] | None = None,
     flicker_tau2: float | None = None,
 ) -> LinearFit:
-    """Seed 003 eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
+    """[SEED003] eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
 
     ``A`` (n, p) design in physical units, columns in priority order; ``y`` (n,) observations; ``sigma`` (n,)
     standard errors of the observations (plateau sems) or None; ``scales`` (p,) physical full-scale of each
@@ -484,7 +484,7 @@ def log_kernel(t_mid: np.ndarray, t_len: np.ndarray) -> np.ndarray:
 
 def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray,
                 tau2: float | None = None):
-    """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML (Patterson-Thompson).
+    """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML ([PATTERSON1971]).
 
     Bias instability (flicker) makes plateau errors correlated over the run: low-frequency contrasts (up vs down
     positions several minutes apart) do not average down as independent sems promise, and the residual scatter,

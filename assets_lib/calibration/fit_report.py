@@ -3,7 +3,7 @@
 Values are SI in ``value``/``stderr``/``unit``; lab units only in ``value_lab``/``stderr_lab``/``unit_lab``:
 ppm for scale-factor error (K - 1), nonlinearity and asymmetry; deg/h for gyro bias; mg for accelerometer
 bias; arcsec for misalignment; ug/g^2 for K2 and cross-coupling; deg/h/g for gyro g-sensitivity.
-g in lab units is standard gravity (ISO 80000-3, 9.80665 m/s^2): a unit, not the local gravity.
+g in lab units is standard gravity ([ISO80000-3], 9.80665 m/s^2): a unit, not the local gravity.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Plausible coefficient magnitudes per device grade, for quality gates (a coefficient outside is suspect).
 
-Generous envelopes around typical datasheet values (docs effects.md; IEEE 952 / 1293 grade tables): a fit that
+Generous envelopes around typical datasheet values ([IEEE952], [IEEE1431] and [IEEE1293] specification formats): a fit that
 lands outside means a mis-declared unit, a wrong plan or a broken sensor, not a normal device.
 """
 

@@ -1,11 +1,11 @@
-"""Single-axis fits on tables of plateau means (labs without raw logs): seed 001's rate and tumble fits.
+"""Single-axis fits on tables of plateau means (labs without raw logs): [SEED001]'s rate and tumble fits.
 
-Rate (seed 001 eq. 1-3, seed 003 eq. 3-8): U_j = U0 + K w_j + v_j over commanded rates w_j, by least squares;
+Rate ([SEED001] eq. 1-3, [SEED003] eq. 3-8): U_j = U0 + K w_j + v_j over commanded rates w_j, by least squares;
 nonlinearity (max deviation over the full-scale output, ppm) and asymmetry (K+ vs K-, ppm), each with an
 uncertainty; saturated and wild plateaus excluded automatically and reported.
 
-Tumble (seed 001 eq. 4-7): U = K0 + K1 sin(theta) + K2 sin^2(theta) + K3 sin(theta) cos(theta), the input
-a_i = sin(theta) g and the cross input a_o = cos(theta) g; optionally the IEEE 1293 misalignment term
+Tumble ([SEED001] eq. 4-7): U = K0 + K1 sin(theta) + K2 sin^2(theta) + K3 sin(theta) cos(theta), the input
+a_i = sin(theta) g and the cross input a_o = cos(theta) g; optionally the [IEEE1293] misalignment term
 delta_o cos(theta). Coefficients in the lab's output unit (V, counts, ...) per g and per g^2.
 
 Both use the same engine (:func:`assets_lib.calibration.fit_core.fit_linear`) as the plateau-table fits: identifiability,
@@ -154,7 +154,7 @@ def fit_rate_means(
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
 ) -> MeansFit:
-    """Seed 001 eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
+    """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
     ``rate`` commanded rates in ``rate_unit`` (deg/s, rad/s, deg/h, mrad/s); ``output`` plateau means in any
     unit; ``sem`` optional standard errors of the means. ``exclusion``: 'auto' (saturation: flat tops and
@@ -227,7 +227,7 @@ def fit_tumble_means(
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
 ) -> MeansFit:
-    """Seed 001 eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
+    """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
     K0 [output unit], K1 [output unit/g], K2 and K3 [output unit/g^2]; derived: bias K0/K1 [mg], K2/K1 and
     K3/K1 [ug/g^2]; with ``misalignment_term`` also delta_o (cos theta term / K1) [rad]. Coefficients the

@@ -1,17 +1,17 @@
 """General least-squares multi-position fits from a PLATEAU TABLE, for any position schedule.
 
-Accelerometer (seed 000 eq. 2, 21-22; seed 003 eq. 10): per axis i, over the static plateaus,
+Accelerometer ([SEED000] eq. 2, 21-22; [SEED003] eq. 10): per axis i, over the static plateaus,
 
     y_i = b_i + a_ii f_i + a_ij f_j + a_ik f_k + K2_i f_i^2 + Kc_ij f_i f_j + Kc_ik f_i f_k
 
 with f = ``f_ref_{x,y,z}_mps2``, K_i = a_ii and E_ij = a_ij / a_ii (design.md model). The design matrix is
-built from each plateau's reference specific force, so one function serves seed 003's 24-position plan,
-seed 000's 8-position-per-axis plan, seed 001's 12-position tumble (K0..K3 = b, K, K2, Kc), a 6-position
+built from each plateau's reference specific force, so one function serves [SEED003]'s 24-position plan,
+[SEED000]'s 8-position-per-axis plan, [SEED001]'s 12-position tumble (K0..K3 = b, K, K2, Kc), a 6-position
 plan, or any other schedule. What the schedule cannot observe (e.g. Kc in a 6-position plan, K2 without a
 horizontal position) is reported ``observable=False`` with a NaN value and the reason, by the prescribed-pivot
 QR of :mod:`assets_lib.calibration.fit_core`.
 
-Gyro biases from the static plateaus (seed 000 eq. 17-20): z_i = y_i - [K_i (e_i + E_i)] . omega_ref, the
+Gyro biases from the static plateaus ([SEED000] eq. 17-20): z_i = y_i - [K_i (e_i + E_i)] . omega_ref, the
 earth-rate projection removed with the rate fit's scale factor and misalignment (or nominal 1 and 0), then
 z_i = b_i [+ G_i . f] by WLS; the rate fit's covariance is propagated into the biases; g-sensitivity G is
 fitted when the schedule observes it (``g_sensitivity='auto'``).
@@ -48,7 +48,7 @@ def _times(p: pd.DataFrame):
 
 
 def drift_columns(p: pd.DataFrame, order: int) -> tuple[list[np.ndarray], list[str], list[float]]:
-    """Bias drift over the run as polynomial nuisance columns in plateau mid-time (effects.md: bias ramp; the slow
+    """Bias drift over the run as polynomial nuisance columns in plateau mid-time (a bias ramp; the slow
     part of bias instability). Centred and scaled to the run half-span so full excitation is order one."""
     if order <= 0 or "t_start_s" not in p or "t_end_s" not in p:
         return [], [], []
@@ -161,7 +161,7 @@ def fit_accel_multiposition(
     correlated_noise: bool = CORRELATED,
     flicker_b_mps2: np.ndarray | None = None,
 ) -> AccelMultipositionFit:
-    """Seed 000 eq. 21-22 / seed 003 eq. 10: X = (A^T W A)^-1 A^T W Z per accelerometer axis, any schedule.
+    """[SEED000] eq. 21-22 / [SEED003] eq. 10: X = (A^T W A)^-1 A^T W Z per accelerometer axis, any schedule.
 
     Only static plateaus by default (rate plateaus carry centripetal terms the reference does not model).
     K2 and Kc are optional columns: fitted where the schedule separates them, otherwise unobservable.
@@ -289,7 +289,7 @@ def fit_gyro_static(
     use_flagged: bool = False,
     correlated_noise: bool = True,
 ) -> GyroStaticFit:
-    """Seed 000 eq. 17-20: gyro biases from static positions with the earth-rate projection removed.
+    """[SEED000] eq. 17-20: gyro biases from static positions with the earth-rate projection removed.
 
     The reference ``omega_ref_*`` (= ``omega_earth_*`` for static plateaus) is mapped through the rate fit's
     [K_i (e_i + E_i)] rows (their covariance propagated), or through the given ``scale_factor`` /

@@ -1,16 +1,16 @@
 """Gyro rate fit from a PLATEAU TABLE: scale factor, bias, misalignment, nonlinearity, asymmetry.
 
-Model (docs/design.md, seed 000 eq. 1): y_i = K_i (omega_i + sum_j E_ij omega_j) + b_i [+ G_i . f] + n, per
+Model (docs/design.md, [SEED000] eq. 1): y_i = K_i (omega_i + sum_j E_ij omega_j) + b_i [+ G_i . f] + n, per
 gyro axis i, with ``omega`` the reference input ``omega_ref_{x,y,z}_radps`` (table rate plus the modelled earth
 rate). It is linear in a_ii = K_i, a_ij = K_i E_ij and b_i, and is fitted per axis by weighted least squares
-over the plateaus (seed 003 eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
+over the plateaus ([SEED003] eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
 method. Misalignment is observable only when the plateaus excite the other axes (rate tests about all three
-body axes, seed 000 eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
+body axes, [SEED000] eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
 identifiability rule, the exclusion tests and the covariance policy.
 
-Also: scale-factor nonlinearity (seed 003: max deviation from the fitted line over the full-scale output),
-asymmetry (K+ vs K-, IEEE 952 / seed 003) with uncertainties, automatic exclusion of saturated and wild
-plateaus with reasons, and seed 000's +/- full-revolution difference method (eq. 9-13) as a cross-check.
+Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted line over the full-scale output),
+asymmetry (K+ vs K-, [IEEE952] / [SEED003]) with uncertainties, automatic exclusion of saturated and wild
+plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a cross-check.
 
 g-sensitivity enters as centred nuisance columns: the bias shifts between the rate tests' orientations (G f)
 are absorbed even when G is not separable from the bias, and the bias is then reported at the schedule's mean
@@ -97,7 +97,7 @@ def compression_note(x: np.ndarray, sweep: np.ndarray, saturated: dict[int, str]
 
 
 def sweep_screen_columns(x: np.ndarray, rows: np.ndarray, min_magnitudes: int = 5) -> np.ndarray | None:
-    """Nuisance regressors |w|, w^2, w^3 on the sweep rows, for the outlier screen only (effects.md signatures of
+    """Nuisance regressors |w|, w^2, w^3 on the sweep rows, for the outlier screen only (the signatures of
     asymmetry and nonlinearity); None when the sweep has fewer than ``min_magnitudes`` distinct |rates|."""
     mags = np.unique(np.round(np.abs(x[rows]), 12))
     if np.sum(mags > 0) < min_magnitudes:
@@ -122,7 +122,7 @@ class SweepStats:
 
 
 def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.ndarray, gain: float):
-    """Seed 003 eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
+    """[SEED003] eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
 
     Standard error: the standard deviation of the worst residual (plateau sems, or the residual scatter when
     no sems are given). Noise floor: the 95 % quantile of the same statistic when the only deviation is the
@@ -161,8 +161,8 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     """Asymmetry by a hinge term: y = ... + Kbar w + (dK/2)|w| (shared bias); K+- = Kbar +- dK/2.
 
     One fit with a common bias rather than two separate line fits: the bias is anchored by both signs and the
-    zero-rate plateaus (IEEE 952: asymmetry = difference of the positive- and negative-input scale factors
-    relative to their mean). Note (effects.md): an even nonlinearity (w^2) aliases into |w|.
+    zero-rate plateaus ([IEEE952]: asymmetry = difference of the positive- and negative-input scale factors
+    relative to their mean). Note: an even nonlinearity (w^2) aliases into |w|.
     """
     Ah = np.column_stack([A[:, : main_col + 1], np.abs(x_main), A[:, main_col + 1 :]])
     nh = tuple(names[: main_col + 1]) + ("sf_asymmetry_term",) + tuple(names[main_col + 1 :])
@@ -226,7 +226,7 @@ class GyroAxisRateFit:
 
 @dataclass(frozen=True, eq=False)
 class DifferenceCheck:
-    """Seed 000 eq. 9-13: M = diag(K)(I + E) from +/- plateau pairs at equal |rate| (bias and vertical earth
+    """[SEED000] eq. 9-13: M = diag(K)(I + E) from +/- plateau pairs at equal |rate| (bias and vertical earth
     rate cancel in the difference; horizontal earth rate averages out over whole revolutions)."""
 
     fits: tuple  # per output axis LinearFit of dy_i = sum_j M_ij dw_j
@@ -318,8 +318,8 @@ class GyroRateFit:
         return r[r["excluded"]][["device_id", "run_id", "step_index", "sensor", "axis", "input_value", "reason"]]
 
     def cross_check_table(self) -> pd.DataFrame:
-        """Main fit vs seed 000 difference method; z uses sqrt(se_diff^2 - se_fit^2) (the difference estimator
-        is a less efficient linear estimator on a subset of the same data, Hausman 1978)."""
+        """Main fit vs [SEED000] difference method; z uses sqrt(se_diff^2 - se_fit^2) (the difference estimator
+        is a less efficient linear estimator on a subset of the same data, [HAUSMAN1978])."""
         if self.difference is None:
             return pd.DataFrame()
         d = self.difference
@@ -452,7 +452,7 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
 
 def difference_method(p: pd.DataFrame, excluded: list[np.ndarray] | None = None, *, rel_tol=DEFAULT_REL_TOL,
                       sigma_ok: bool = True) -> DifferenceCheck | None:
-    """Seed 000 eq. 9-13 from plateau means: pair +w and -w plateaus about the same axis at the same |rate|.
+    """[SEED000] eq. 9-13 from plateau means: pair +w and -w plateaus about the same axis at the same |rate|.
 
     For each pair, dy = y(+) - y(-) = M (w(+) - w(-)) (bias, g-sensitivity and the vertical earth rate cancel);
     per output axis i a no-intercept least squares dy_i = sum_j M_ij dw_j over the pairs gives K_i = M_ii and
@@ -534,7 +534,7 @@ def fit_gyro_rate(
     cross_check: bool = True,
     correlated_noise: bool = True,
 ) -> GyroRateFit:
-    """Seed 003 eq. 3 / seed 000 eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
+    """[SEED003] eq. 3 / [SEED000] eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
 
     ``plateaus``: PLATEAU TABLE rows (kind 'rate', plus 'static' when ``include_static``) of one device and
     run. Flagged rows are excluded (reason kept) unless ``use_flagged``. ``g_sensitivity='auto'`` adds

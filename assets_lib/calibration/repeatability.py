@@ -1,7 +1,7 @@
 """Turn-on to turn-on repeatability of bias and scale factor over a device's power-cycled runs.
 
-Bias repeatability (seed 000 eq. 23; GJB 2426A B_r): the sample standard deviation of the per-run biases,
-B_r = sqrt( sum (B_i - mean B)^2 / (Q - 1) ). Scale-factor repeatability (seed 003 eq. 9; GJB K_r):
+Bias repeatability ([SEED000] eq. 23; [GJB2426A] B_r): the sample standard deviation of the per-run biases,
+B_r = sqrt( sum (B_i - mean B)^2 / (Q - 1) ). Scale-factor repeatability ([SEED003] eq. 9; GJB K_r):
 K_r = sqrt( sum (K_i - mean K)^2 / (Q - 1) ) / mean K. Both with the number of runs Q and a chi-square
 confidence interval on the standard deviation, assuming normally distributed run values:
 sigma in [s sqrt(nu / chi2_{1-a/2}(nu)), s sqrt(nu / chi2_{a/2}(nu))], nu = Q - 1.
@@ -25,7 +25,7 @@ from raw_schemas.units import lab_unit
 
 @dataclass(frozen=True)
 class Repeatability:
-    """Seed 000 eq. 23: std of the per-run values (relative to their mean when ``relative``)."""
+    """[SEED000] eq. 23: std of the per-run values (relative to their mean when ``relative``)."""
 
     n_runs: int
     mean: float
@@ -45,7 +45,7 @@ class Repeatability:
 
 
 def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95) -> Repeatability:
-    """Seed 000 eq. 23 (and seed 003 eq. 9 when ``relative``): sample std over runs with a chi-square CI."""
+    """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI."""
     v = np.asarray(values, float)
     ok = np.isfinite(v)
     v = v[ok]
@@ -71,12 +71,12 @@ def repeatability(values, stderrs=None, *, relative: bool = False, confidence: f
 
 
 def bias_repeatability(biases, stderrs=None, *, confidence: float = 0.95) -> Repeatability:
-    """Seed 000 eq. 23: bias repeatability [rad/s or m/s^2] from per-run biases."""
+    """[SEED000] eq. 23: bias repeatability [rad/s or m/s^2] from per-run biases."""
     return repeatability(biases, stderrs, relative=False, confidence=confidence)
 
 
 def scale_factor_repeatability(scale_factors, stderrs=None, *, confidence: float = 0.95) -> Repeatability:
-    """Seed 003 eq. 9: scale-factor repeatability std(K_i)/mean(K) (dimensionless; x 1e6 = ppm)."""
+    """[SEED003] eq. 9: scale-factor repeatability std(K_i)/mean(K) (dimensionless; x 1e6 = ppm)."""
     return repeatability(scale_factors, stderrs, relative=True, confidence=confidence)
 
 

@@ -18,7 +18,7 @@ def detect_saturation(
     x_unit: str = "",
     x_factor: float = 1.0,
 ) -> dict[int, str]:
-    """Saturation at both ends of a rate sweep; returns {row: reason} (effects.md: flat tops beyond full scale).
+    """Saturation at both ends of a rate sweep; returns {row: reason} (flat tops beyond the input range, [IEEE952] / [IEEE1293] input limits; [SEED001] drops its 90 deg/s point by hand).
 
     1. Flat top. Sort by input; take the robust (Theil-Sen) gain K of the sweep. Walking inward from each end,
        a plateau is saturated when its incremental gain to the next inner plateau is below ``gain_ratio`` * K

@@ -1,4 +1,4 @@
-"""The IEEE 952 noise model pooled over many short windows of one channel (the plateaus of a run).
+"""The [IEEE952] noise model pooled over many short windows of one channel (the plateaus of a run).
 
 [IEEE952] Annex C terms fitted to the EDF-weighted mean overlapping Allan variance ([NIST1065] eq. 11) of all
 windows, each window keeping its own white level; the model gives the Allan variance at any window length
@@ -24,7 +24,7 @@ MODEL_PENALTY = 6.0
 
 @dataclass(frozen=True)
 class PooledAllanFit:
-    """IEEE 952 Annex C model fitted to all plateaus of one channel: per-plateau Q_k^2, N_k^2; shared B-term, K^2."""
+    """[IEEE952] Annex C model fitted to all plateaus of one channel: per-plateau Q_k^2, N_k^2; shared B-term, K^2."""
 
     q2: np.ndarray
     n2: np.ndarray
@@ -32,13 +32,13 @@ class PooledAllanFit:
     k2: float
 
     def avar(self, k: int, tau_s: float | np.ndarray) -> np.ndarray:
-        """IEEE Std 952-1997 eq. C.23 for plateau k: 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau / 3."""
+        """[IEEE952] eq. C.23 for plateau k: 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau / 3."""
         tau = np.asarray(tau_s, dtype=float)
         return 3 * self.q2[k] / tau**2 + self.n2[k] / tau + self.flicker_avar + self.k2 * tau / 3
 
 
 def overlapping_avar(x: np.ndarray, m_list) -> tuple[np.ndarray, np.ndarray]:
-    """NIST SP 1065 eq. 11 (overlapping Allan variance) of rate samples ``x`` at cluster sizes ``m_list``.
+    """[NIST1065] eq. 11 (overlapping Allan variance) of rate samples ``x`` at cluster sizes ``m_list``.
 
     Returns (avar, n_terms) per m; avar in units of x^2.
     """
@@ -54,7 +54,7 @@ def overlapping_avar(x: np.ndarray, m_list) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_pooled_allan(segments: list[np.ndarray], dt_s: float, max_cluster_fraction: float = 0.5) -> PooledAllanFit:
-    """IEEE Std 952-1997 Annex C fitted to the EDF-weighted mean Allan variance of all windows of one channel.
+    """[IEEE952] Annex C fitted to the EDF-weighted mean Allan variance of all windows of one channel.
 
     Each window contributes its overlapping Allan variance at octave cluster sizes and at the median window's
     ``max_cluster_fraction * n`` (the longest tau inside a window); the EDF-weighted average over windows is
@@ -130,7 +130,7 @@ def mean_difference_variance(fit: PooledAllanFit, k: int, t_a: float, c_a: float
                              rate_hz: float, n_grid: int = 4000) -> float:
     """Var(ybar_A - ybar_R) of two window means (lengths t_a, t_r, centres c_a, c_r) under the model of window k.
 
-    IEEE Std 952-1997 Annex C two-sided rate PSDs (as ``assets_lib.sim.noise``): white N^2, flicker B^2/(2 pi f),
+    [IEEE952] Annex C two-sided rate PSDs (as ``assets_lib.sim.noise``): white N^2, flicker B^2/(2 pi f),
     random walk K^2/(2 pi f)^2; Var = int S(f) |H_A - H_R|^2 df. White part in closed form N^2 (1/T_A - 1/T_R)
     (A inside R), quantization as its Allan value 3 Q^2 / T_A^2. For a fit that wants the covariance of plateau
     means (e.g. each plateau against the run mean, or two distant plateaus) rather than the local SEM.

@@ -5,12 +5,12 @@ Two ways to find the plateaus of a plan (``raw_schemas.TestPlan``; plan times ar
 * **with a turntable log** (canonical ``time_s`` on the table clock, ``angle_rad``, ``rate_radps``,
   ``step_index``): :mod:`.clock` aligns the table clock to the IMU clock ([SEED003]: "time-align table and IMU
   data, then cut each 2-minute plateau"); plateaus are cut where the table log says step k ran.
-* **without a table log**: :mod:`.detection` finds quiet intervals in the IMU data alone ([IMUTK] variance
+* **without a table log**: :mod:`.detection` finds quiet intervals in the IMU data alone ([TEDALDI2014] variance
   detector) and matches them to the plan steps.
 
 :mod:`.plateaus` trims the windows, cuts whole table turns ([SEED000]), rejects outliers ([SEED001]) and builds
 the PLATEAU TABLE; :mod:`.window_stats` gives the standard error of each mean under correlated noise from the
-run's pooled IEEE 952 model (:mod:`assets_lib.noise.pooled`); :mod:`.plots` draws the run. The public names
+run's pooled [IEEE952] model (:mod:`assets_lib.noise.pooled`); :mod:`.plots` draws the run. The public names
 are importable from here.
 """
 

@@ -49,7 +49,7 @@ def _uniform(t: np.ndarray, y: np.ndarray, dt: float) -> tuple[float, np.ndarray
 
 
 def _table_axis_body(plan, t_s: np.ndarray, chunk: int = 200_000) -> np.ndarray:
-    """Body-frame table axis u_b(t) = C_b^l(t)^T a along the plan's kinematics (seed 000 eq. 3-5)."""
+    """Body-frame table axis u_b(t) = C_b^l(t)^T a along the plan's kinematics ([SEED000] eq. 3-5)."""
     axis = np.asarray(plan.table_axis_level, dtype=float)
     out = np.empty((t_s.size, 3))
     for i in range(0, t_s.size, chunk):
@@ -162,7 +162,7 @@ def table_steps(table: pd.DataFrame) -> dict[int, tuple[float, float]]:
 
 def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: SegmentationConfig = SegmentationConfig()
                  ) -> ClockAlignment:
-    """Seed 003 time alignment: offset (t_table = t_imu + offset) maximising corr(table rate, gyro . u_b), parabolic peak.
+    """[SEED003] time alignment: offset (t_table = t_imu + offset) maximising corr(table rate, gyro . u_b), parabolic peak.
 
     Falls back to matching step centres (table ``step_index`` runs vs detected quiet intervals) when the table
     rate carries no signal (e.g. a position plan whose table log shows no rotation) or correlates poorly.

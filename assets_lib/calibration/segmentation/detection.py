@@ -1,6 +1,6 @@
 """Plateaus without a table log: quiet intervals in the IMU data and their match to the plan steps.
 
-Quiet intervals are detected in the IMU data alone ([IMUTK] variance detector on the gyro- and
+Quiet intervals are detected in the IMU data alone ([TEDALDI2014] variance detector on the gyro- and
 accelerometer-norm, threshold a multiple of the record's own noise floor, edges refined sample by sample) and
 matched to the plan steps by a common time shift, using both timing and content (expected angular rate and
 specific-force direction); steps without a matching interval are reported.
@@ -57,7 +57,7 @@ def _robust_center_scale(x: np.ndarray, res: np.ndarray) -> tuple[np.ndarray, np
 def detect_quiet_intervals(
     t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray | None = None, config: DetectorConfig = DetectorConfig()
 ) -> QuietDetection:
-    """imu_tk static detector (Tedaldi et al. ICRA 2014 sec. IV-A): moving variance vs k x noise floor, min duration.
+    """imu_tk static detector ([TEDALDI2014] sec. IV-A): moving variance vs k x noise floor, min duration.
 
     Statistic: moving variance (centred, ``window_s``) of |gyro| and |accel| (norms are unchanged by the rotation
     of a constant-magnitude vector, so constant-rate plateaus are quiet too). Threshold: ``k_threshold`` x the

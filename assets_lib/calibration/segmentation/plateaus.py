@@ -56,7 +56,7 @@ class SegmentationResult:
 
 
 def whole_revolution_window(a_s: float, b_s: float, angle_of_t) -> tuple[float, float, float]:
-    """Seed 000 full-revolution method: the centred sub-window of [a, b] turning the table a whole number of turns.
+    """[SEED000] full-revolution method: the centred sub-window of [a, b] turning the table a whole number of turns.
 
     ``angle_of_t`` maps IMU-clock times to the (unwrapped, monotone within the step) table angle. Returns
     (start, end, revolutions); when less than one turn fits, the window is unchanged and revolutions fractional.
@@ -90,7 +90,7 @@ def plateau_columns() -> list[str]:
 
 def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
                 config: SegmentationConfig = SegmentationConfig()) -> SegmentationResult:
-    """Plateau table of one run (docs/design.md PLATEAU TABLE); seed 003 alignment, seed 000 whole turns, seed 001 outliers.
+    """Plateau table of one run (docs/design.md PLATEAU TABLE); [SEED003] alignment, [SEED000] whole turns, [SEED001] outliers.
 
     ``n_samples`` counts the samples kept for the means; ``n_rejected`` the outliers removed from the window;
     ``rejected_fraction`` = n_rejected / (n_samples + n_rejected). SEMs per the module docstring.
@@ -262,7 +262,7 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     df["n_samples"] = df["n_samples"].astype(np.int64)
     df["n_rejected"] = df["n_rejected"].astype(np.int64)
     df["flagged"] = df["flagged"].astype(bool)
-    for ch, fit in noise_fits.items():  # IEEE 952 C.3: flicker plateau (2 ln2 / pi) B^2 -> B, shared by the run
+    for ch, fit in noise_fits.items():  # [IEEE952] C.3: flicker plateau (2 ln2 / pi) B^2 -> B, shared by the run
         df[f"{ch}_flicker_b"] = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
     return SegmentationResult(df, method, alignment, detection, shifts, tuple(unmatched), window_step, keep,
                               noise_fits, tuple(warnings))

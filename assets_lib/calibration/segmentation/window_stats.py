@@ -1,11 +1,11 @@
-"""Standard errors of plateau means under correlated noise: sigma_A(T) of the run's pooled IEEE 952 model.
+"""Standard errors of plateau means under correlated noise: sigma_A(T) of the run's pooled [IEEE952] model.
 
 The SEM reported for a window of length T is the square root of the Allan variance at tau = T,
 sigma_A^2(T) = 1/2 E[(ybar_{k+1} - ybar_k)^2] ([IEEE952] C.1): the scatter of a T-long mean about its
 neighbours. For white noise it equals sigma^2 / n exactly; for bias instability and rate random walk it stays
 finite where sigma / sqrt(n) goes to zero (for a random walk it is also the variance of the window mean about
 the process value at the window start, K^2 T / 3). sigma_A^2(T) cannot be computed from one window of length T,
-so it is read from a noise model (IEEE 952 Annex C terms) fitted to the EDF-weighted mean overlapping Allan
+so it is read from a noise model ([IEEE952] Annex C terms) fitted to the EDF-weighted mean overlapping Allan
 variance of all plateaus of the run (tau up to T/2; :mod:`assets_lib.noise.pooled`): quantization and white
 noise always, bias instability and rate random walk only when they improve the fit by more than
 ``MODEL_PENALTY`` (calibrated so that white noise gains a spurious term in <= 5 % of runs); each plateau keeps
@@ -38,7 +38,7 @@ class SemResult:
 
 
 def plateau_sem(segments: list[np.ndarray], dt_s: float, max_cluster_fraction: float = 0.5) -> SemResult:
-    """IEEE Std 952-1997 C.1: SEM_k^2 = sigma_A^2(T_k) of the pooled Annex C model, T_k = n_k dt (module docstring).
+    """[IEEE952] C.1: SEM_k^2 = sigma_A^2(T_k) of the pooled Annex C model, T_k = n_k dt (module docstring).
 
     ``segments``: the residual samples (y - reference) of each window of one channel, in run order.
     """

@@ -1,4 +1,4 @@
-"""Allan-family deviations of rate or angle records: exact, fast, bounded memory ([NIST1065], [IEEE952] Annex C).
+"""Allan-family deviations ([ALLAN1966], [NIST1065]) of rate or angle records: exact, fast, bounded memory.
 
 Layers, bottom up: :mod:`.kernels` (block sums of squared second differences, numpy or numba, identical bits),
 :mod:`.phase` (float64 phase of a record), :mod:`.estimators` (one channel: tau grids, the six estimators,

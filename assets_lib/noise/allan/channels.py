@@ -44,7 +44,7 @@ def _channels_of(data, channels: Sequence[str] | None) -> list[tuple[str, np.nda
 def allan_deviations(
     data, rate_hz: float, taus="octave", *, channels: Sequence[str] | None = None, units=None, **kw
 ) -> dict[str, AllanResult]:
-    """Seed 002 eq. 4 per channel: several channels in one call, reusing one float64 phase buffer.
+    """[SEED002] eq. 4 per channel: several channels in one call, reusing one float64 phase buffer.
 
     ``data``: (N, C) array, mapping of name -> array, or DataFrame (a ``time_s`` column is skipped).
     ``units``: one unit string for all channels or a mapping channel -> unit (labels only; data are SI).
@@ -112,7 +112,7 @@ def _deviations_rowmajor(arr, rate_hz, taus, *, channels=None, units=None, kind=
 
 
 def allan_table(data, rate_hz: float, channels: Sequence[str] | None = None, taus="octave", **kw) -> pd.DataFrame:
-    """Seed 002 eq. 4: tidy table (channel, tau_s, adev, ci_lo, ci_hi, edf, n_terms, m, alpha) of several channels."""
+    """[SEED002] eq. 4: tidy table (channel, tau_s, adev, ci_lo, ci_hi, edf, n_terms, m, alpha) of several channels."""
     if isinstance(data, Mapping) and data and isinstance(next(iter(data.values())), AllanResult):
         res = data
     else:

@@ -37,7 +37,7 @@ ID_MIN_POINTS = 32
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class AllanResult:
-    """One channel's deviation curve with per-tau EDF and chi-square interval (NIST SP 1065 sec. 5.3)."""
+    """One channel's deviation curve with per-tau EDF and chi-square interval ([NIST1065] sec. 5.3)."""
 
     kind: str  #: 'oadev' | 'adev' | 'mdev' | 'tdev' | 'hdev' | 'ohdev'
     data_type: str  #: 'rate' (frequency-like) | 'angle' (phase-like)
@@ -47,7 +47,7 @@ class AllanResult:
     tau_s: np.ndarray
     adev: np.ndarray  #: the deviation of type ``kind`` (rate units; TDEV: angle units / rate)
     n_terms: np.ndarray  #: number of squared differences summed
-    edf: np.ndarray  #: equivalent degrees of freedom (Greenhall & Riley 2003)
+    edf: np.ndarray  #: equivalent degrees of freedom ([GREENHALL2003])
     ci_lo: np.ndarray
     ci_hi: np.ndarray
     alpha: np.ndarray  #: power-law exponent used for the EDF (lag-1 ACF identification or given)
@@ -81,7 +81,7 @@ class AllanResult:
 # tau grids
 # --------------------------------------------------------------------------------------------------------------
 def n_terms_for(kind: str, n_phase: int, m: np.ndarray) -> np.ndarray:
-    """NIST SP 1065 eqs. 7, 10, 14, 16, 17: number of terms of each estimator for ``n_phase`` phase points."""
+    """[NIST1065] eqs. 7, 10, 14, 16, 17: number of terms of each estimator for ``n_phase`` phase points."""
     m = np.asarray(m, dtype=np.int64)
     if kind == "oadev":
         return n_phase - 2 * m
@@ -106,7 +106,7 @@ def averaging_factors(
 ) -> np.ndarray:
     """Averaging factors m (tau = m tau0) for a record of ``n_samples``: octave, decade, dense, all or int.
 
-    - ``'octave'``: 1, 2, 4, 8, ...  (NIST SP 1065 sec. 4; allantools 'octave')
+    - ``'octave'``: 1, 2, 4, 8, ...  ([NIST1065] sec. 4; allantools 'octave')
     - ``'decade'``: 1, 2, 4, 10, 20, 40, ...  (Stable32 decade)
     - ``'dense'``: 100 unique log-spaced integers (the MATLAB example's grid); an int k gives k of them
     - ``'all'``: every m
@@ -176,7 +176,7 @@ _HDIFF = (1.0, -3.0, 3.0, -1.0)
 
 
 def _sumsq_diff(x: np.ndarray, m: int, stride: int, order: int) -> tuple[float, int]:
-    """NIST SP 1065 eqs. 7 and 16/17: sum of squared 2nd (Allan) or 3rd (Hadamard) differences of x at lag m."""
+    """[NIST1065] eqs. 7 and 16/17: sum of squared 2nd (Allan) or 3rd (Hadamard) differences of x at lag m."""
     n_phase = len(x)
     n = (n_phase - 1 - order * m) // stride + 1 if n_phase - 1 - order * m >= 0 else 0
     if n <= 0:
@@ -203,7 +203,7 @@ def _sumsq_diff(x: np.ndarray, m: int, stride: int, order: int) -> tuple[float, 
 
 
 def _mod_sums(x: np.ndarray, m: int) -> tuple[float, int]:
-    """NIST SP 1065 eq. 14: sum_j (sum_{i=j}^{j+m-1} x[i+2m] - 2x[i+m] + x[i])^2 over j = 0..N-3m."""
+    """[NIST1065] eq. 14: sum_j (sum_{i=j}^{j+m-1} x[i+2m] - 2x[i+m] + x[i])^2 over j = 0..N-3m."""
     n_phase = len(x)
     n = n_phase - 3 * m + 1
     if n <= 0:
@@ -260,7 +260,7 @@ def deviation_from_phase(x: np.ndarray, m: np.ndarray, kind: str, kernel) -> tup
 # noise identification and intervals
 # --------------------------------------------------------------------------------------------------------------
 def _alpha_from_decimated(dec: Mapping[int, np.ndarray], m: np.ndarray, data_type: str, kind: str) -> np.ndarray:
-    """Riley & Greenhall 2004: alpha per tau from the phase sampled every m (first ID_POINTS+1 points)."""
+    """[RILEY2004]: alpha per tau from the phase sampled every m (first ID_POINTS+1 points)."""
     dmax = 3 if kind in ("hdev", "ohdev") else 2
     out = np.zeros(len(m))
     last = 0.0
@@ -339,7 +339,7 @@ def allan_deviation(
     unit: str = "",
     _phase_buffer: np.ndarray | None = None,
 ) -> AllanResult:
-    """Seed 002 eq. 3/4, NIST SP 1065 eqs. 7-18: Allan-family deviation of one channel, with EDF and interval.
+    """[SEED002] eq. 3/4, [NIST1065] eqs. 7-18: Allan-family deviation of one channel, with EDF and interval.
 
     ``data``: 1-D rate samples (``data_type='rate'``, e.g. rad/s) or angle samples (``'angle'``, e.g. rad), any
     float dtype (accumulated in float64). ``taus``: 'octave' | 'decade' | 'dense' | 'all' | int count | array of
@@ -364,30 +364,30 @@ def allan_deviation(
 
 
 def oadev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 10 (seed 002 eq. 4): overlapping Allan deviation."""
+    """[NIST1065] eq. 10 ([SEED002] eq. 4): overlapping Allan deviation."""
     return allan_deviation(data, rate_hz, taus, kind="oadev", **kw)
 
 
 def adev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 7 (seed 002 eq. 3): non-overlapping Allan deviation."""
+    """[NIST1065] eq. 7 ([SEED002] eq. 3): non-overlapping Allan deviation."""
     return allan_deviation(data, rate_hz, taus, kind="adev", **kw)
 
 
 def mdev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 14: modified Allan deviation."""
+    """[NIST1065] eq. 14: modified Allan deviation."""
     return allan_deviation(data, rate_hz, taus, kind="mdev", **kw)
 
 
 def hdev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 16: (non-overlapping) Hadamard deviation."""
+    """[NIST1065] eq. 16: (non-overlapping) Hadamard deviation."""
     return allan_deviation(data, rate_hz, taus, kind="hdev", **kw)
 
 
 def ohdev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 17: overlapping Hadamard deviation."""
+    """[NIST1065] eq. 17: overlapping Hadamard deviation."""
     return allan_deviation(data, rate_hz, taus, kind="ohdev", **kw)
 
 
 def tdev(data, rate_hz: float, taus="octave", **kw) -> AllanResult:
-    """NIST SP 1065 eq. 15: time deviation, tau * MDEV / sqrt(3)."""
+    """[NIST1065] eq. 15: time deviation, tau * MDEV / sqrt(3)."""
     return allan_deviation(data, rate_hz, taus, kind="tdev", **kw)

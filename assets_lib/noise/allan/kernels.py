@@ -94,7 +94,7 @@ def _openblas_handle():
 
 @contextlib.contextmanager
 def single_thread_blas():
-    """Pin OpenBLAS to one thread while thousands of small dot products run (allan.md section 3.2)."""
+    """Pin OpenBLAS to one thread while thousands of small dot products run (a multithreaded BLAS only adds overhead to dot products of this size)."""
     h = _openblas_handle()
     if h is None:
         yield
@@ -357,7 +357,7 @@ def get_kernel(backend: str):
 # overlapping Allan sums of a phase array in memory
 # --------------------------------------------------------------------------------------------------------------
 def oadev_sums_inmemory(x: np.ndarray, m: np.ndarray, kernel) -> np.ndarray:
-    """NIST SP 1065 eq. 11 (seed 002 eq. 4): sum_i (x[i+2m] - 2x[i+m] + x[i])^2 for each m, exactly.
+    """[NIST1065] eq. 11 ([SEED002] eq. 4): sum_i (x[i+2m] - 2x[i+m] + x[i])^2 for each m, exactly.
 
     Small m: block-outer, tau-inner over cache-sized windows. m >= M_CHAIN: blocks visited in chains
     i, i+m, i+2m, ... so that two of the three phase windows are still in cache (one memory stream per tau).

@@ -2,7 +2,7 @@
 
 Layer 1 of :mod:`assets_lib.noise.allan` ([NIST1065] eq. 4; [SEED002] eq. 1): rate -> cumulative sum of the
 mean-removed rate; angle -> the angle minus the line through its end points; accumulated in float64 whatever
-the input dtype ([ALLANDOC] sec. 4 on float32 accumulation).
+the input dtype (a float32 running sum loses the small tau; [NIST1065] eq. 4).
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def array_blocks(y: np.ndarray, start: int = 0, size: int = PHASE_BLOCK) -> Iter
 
 
 def build_phase(y: np.ndarray, data_type: str = "rate", out: np.ndarray | None = None) -> tuple[np.ndarray, PhaseSpec]:
-    """Seed 002 eq. 1 / NIST SP 1065 eq. 4: float64 phase of a record (mean-removed cumulative sum for rate)."""
+    """[SEED002] eq. 1 / [NIST1065] eq. 4: float64 phase of a record (mean-removed cumulative sum for rate)."""
     y = np.asarray(y)
     if y.ndim != 1:
         raise ValueError("build_phase takes one channel (1-D)")

@@ -238,7 +238,7 @@ def allan_parquet(
     units=None,
     spill_dir=None,
 ) -> dict[str, AllanResult]:
-    """Seed 002 eq. 4 streamed: OADEV of parquet columns read in batches, memory independent of N.
+    """[SEED002] eq. 4 streamed: OADEV of parquet columns read in batches, memory independent of N.
 
     Reads each column twice (mean, then phase with a sliding window for 2m <= SMALL_SPAN); the phase of taus
     beyond the window is spilled to a temporary file in ``spill_dir`` (8 bytes per sample on disk, read back
