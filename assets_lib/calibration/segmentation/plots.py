@@ -9,6 +9,7 @@ import pandas as pd
 
 from assets_lib.calibration.segmentation.plateaus import SegmentationResult
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
+from raw_schemas.units import RADPS_TO_DEGPS
 
 
 def plot_segmentation_png(imu: pd.DataFrame, result: SegmentationResult, title: str = "", max_points: int = 20000,
@@ -22,7 +23,7 @@ def plot_segmentation_png(imu: pd.DataFrame, result: SegmentationResult, title: 
     fig = Figure(figsize=(11, 5.5), dpi=dpi)
     FigureCanvasAgg(fig)
     ax_g, ax_a = fig.subplots(2, 1, sharex=True)
-    panels = ((ax_g, GYRO_COLUMNS, 180 / np.pi, "gyro [deg/s]"), (ax_a, ACCEL_COLUMNS, 1.0, "accel [m/s^2]"))
+    panels = ((ax_g, GYRO_COLUMNS, RADPS_TO_DEGPS, "gyro [deg/s]"), (ax_a, ACCEL_COLUMNS, 1.0, "accel [m/s^2]"))
     for ax, cols, scale, label in panels:
         for c, color in zip(cols, ("tab:red", "tab:green", "tab:blue")):
             ax.plot(t[::step], imu[c].to_numpy(dtype=float)[::step] * scale, lw=0.6, color=color, label=c.split("_")[1])
