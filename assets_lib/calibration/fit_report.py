@@ -3,7 +3,8 @@
 Values are SI in ``value``/``stderr``/``unit``; lab units only in ``value_lab``/``stderr_lab``/``unit_lab``:
 ppm for scale-factor error (K - 1), nonlinearity and asymmetry; deg/h for gyro bias; mg for accelerometer
 bias; arcsec for misalignment; ug/g^2 for K2 and cross-coupling; deg/h/g for gyro g-sensitivity.
-g in lab units is standard gravity ([ISO80000-3], 9.80665 m/s^2): a unit, not the local gravity.
+g in lab units is standard gravity ([ISO80000-3], 9.80665 m/s^2): a unit, not the local gravity. Every
+conversion comes from the one lab-unit table, ``raw_schemas.units.lab_unit``.
 """
 
 from __future__ import annotations
@@ -36,12 +37,6 @@ COEFFICIENT_COLUMNS = [
 ]
 #: extra columns after the contract ones: 95 % interval (SI) with the right coverage factor, and the fit dof
 EXTRA_COEFFICIENT_COLUMNS = ["ci95_low", "ci95_high", "dof", "cov_policy", "note"]
-
-def units_of(sensor: str, coefficient: str) -> tuple[str, str, float, float]:
-    """(SI unit, lab unit, lab factor, lab offset) of a coefficient: the one table, ``raw_schemas.units.lab_unit``."""
-    u = lab_unit(sensor, coefficient)
-    return u.si, u.lab, u.factor, u.offset
-
 
 def coefficient_row(
     *,
