@@ -272,3 +272,28 @@ def test_rail_plateau_next_to_a_flat_top_is_excluded():
         for r in at_rail:
             assert not ax.fit.used[r] and ax.fit.exclusion_reason[r].startswith("saturated"), (a, r)
         assert abs(ax.scale_factor.value - t.Kg[i]) < Z_FAMILY * ax.scale_factor.stderr
+
+
+def test_one_lab_unit_table_and_typed_coefficient():
+    """raw_schemas.units.lab_unit is the one lab-unit table (calibration coefficients and noise terms); a
+    Coefficient converts with it, carries its interval and is NaN when unobservable."""
+    import math
+
+    from assets_lib.coefficient import Coefficient
+    from raw_schemas.units import lab_unit
+
+    deg_h = lab_unit("gyro", "bias")
+    assert (deg_h.si, deg_h.lab) == ("rad/s", "deg/h") and math.isclose(deg_h.to_lab(math.radians(1 / 3600)), 1.0)
+    assert lab_unit("accel", "bias").lab == "mg" and math.isclose(lab_unit("accel", "bias").to_lab(9.80665e-3), 1.0)
+    sf = lab_unit("gyro", "scale_factor")
+    assert sf.lab == "ppm" and math.isclose(sf.to_lab(1.0 + 25e-6), 25.0)
+    assert lab_unit("accel", "B").lab == "ug" and lab_unit("gyro", "N").lab == "deg/sqrt(h)"
+    assert lab_unit("gyro", "B").factor == deg_h.factor  # one conversion for deg/h, wherever it is used
+    with pytest.raises(KeyError):
+        lab_unit("gyro", "temperature_coefficient")
+    c = Coefficient.with_coverage(1.0 + 10e-6, 2e-6, "1", True, k=2.5)
+    assert c.interval() == (c.value - 2.5 * c.stderr, c.value + 2.5 * c.stderr)
+    ppm = c.to_lab(sf)
+    assert math.isclose(ppm.value, 10.0) and math.isclose(ppm.stderr, 2.0) and math.isclose(ppm.ci_low, 10.0 - 5.0)
+    u = Coefficient(3.0, 1.0, "rad", observable=False)
+    assert math.isnan(u.value) and math.isnan(u.stderr) and not u.observable
