@@ -4,7 +4,7 @@ Every configuration runs in a fresh single-threaded subprocess (OPENBLAS/OMP/NUM
 the subprocess builds its input, resets the kernel's peak-RSS counter (/proc/self/clear_refs = 5), runs the
 call, and reports VmHWM minus the RSS before the call ("extra", also as a multiple of the input's size).
 Data: rate at 100 Hz, white (0.1) + rate random walk (1e-4 sqrt(0.01)) + 0.5 offset, float64, fixed seed
-(the allan.md section 3 series). Tau sets: 'octave' (allantools' octave m) and 'dense' (100 unique integer m
+(the series of the tests). Tau sets: 'octave' (allantools' octave m) and 'dense' (100 unique integer m
 log-spaced from 1 to (N-1)/2), passed as the same explicit array to both libraries.
 
     python benchmarks/bench_allan.py                 # N = 5e7 (about 10 minutes on 2 cores)

@@ -29,7 +29,7 @@ KIND_FUNCS = {
 
 
 def _series(n, seed=1, offset=0.5):
-    """White rate noise + rate random walk + offset (the allan.md benchmark series)."""
+    """White rate noise + rate random walk + offset (the benchmark series of benchmarks/bench_allan.py)."""
     rng = np.random.default_rng(seed)
     return offset + 0.1 * rng.standard_normal(n) + np.cumsum(1e-4 * np.sqrt(0.01) * rng.standard_normal(n))
 
@@ -303,7 +303,7 @@ def test_acf_noise_id_pure_noises():
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# precision: float32 input, gravity offset (allan.md section 4)
+# precision: float32 input, gravity offset (float64 accumulation, [NIST1065] eq. 4)
 # ---------------------------------------------------------------------------------------------------------------
 def test_float32_gravity_axis_matches_float64():
     n = 10_000_000
