@@ -193,7 +193,8 @@ def _se(m):
 _NOISE_PARAMS = {"Q": "q", "N": "n", "B": "b", "K": "k", "R": "r"}
 
 
-def _noise_from_table(noise: pd.DataFrame | None) -> NoiseModel:
+def _noise_from_table(noise: pd.DataFrame | None, dropped: list | None = None) -> NoiseModel:
+    """Allan terms of the fit (method 'fit'); terms the record only bounds are left out (listed in ``dropped``)."""
     if noise is None or noise.empty:
         return NoiseModel()
     fit = noise[noise["method"] == "fit"]
@@ -204,8 +205,12 @@ def _noise_from_table(noise: pd.DataFrame | None) -> NoiseModel:
             rows = fit[fit.channel == f"{sensor}_{a}_{unit}"]
             kw = {}
             for _, r in rows.iterrows():
-                if r.parameter in _NOISE_PARAMS and not bool(r.is_upper_bound) and np.isfinite(r.value):
+                if r.parameter not in _NOISE_PARAMS:
+                    continue
+                if not bool(r.is_upper_bound) and np.isfinite(r.value):
                     kw[_NOISE_PARAMS[r.parameter]] = abs(float(r.value))
+                elif dropped is not None:
+                    dropped.append(f"{r.channel}:{r.parameter} <= {float(r.ci_hi if np.isfinite(r.ci_hi) else r.value):.3g} {r.unit}")
             axes[a] = AxisNoise(**kw)
         tri[sensor] = TriadNoise(**axes)
     return NoiseModel(**tri)
@@ -267,6 +272,10 @@ def model_from_calibration(runs: list[RunOutputs], provenance: dict | None = Non
     if not cycles:
         raise ValueError("no coefficient tables among the calibration outputs")
     noise_runs = [r.noise for r in runs if r.noise is not None and len(r.noise)]
+    dropped: list[str] = []
+    noise = _noise_from_table(noise_runs[-1] if noise_runs else None, dropped)
+    prov = dict(provenance or {"source": "calibration outputs", "runs": sorted(r.run_id for r in runs)})
+    prov["noise_terms_only_bounded"] = dropped  # not simulated: the static record only bounds them
     def lsb(name: str, fam: str) -> tuple[float, str]:
         spec = ch[name]
         if spec.get("unit") == "counts":
@@ -278,9 +287,9 @@ def model_from_calibration(runs: list[RunOutputs], provenance: dict | None = Non
     return DeviceModel(
         device=man0["device"], sample_rate_hz=float(man0["sample_rate_hz"]),
         outputs=Outputs(gyro_lsb=glsb, gyro_lsb_unit=gunit, accel_lsb=alsb, accel_lsb_unit=aunit),
-        noise=_noise_from_table(noise_runs[-1] if noise_runs else None),
+        noise=noise,
         power_cycles=cycles,
-        provenance=provenance or {"source": "calibration outputs", "runs": sorted(r.run_id for r in runs)},
+        provenance=prov,
     )
 
 

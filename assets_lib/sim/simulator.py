@@ -26,12 +26,7 @@ from assets_lib.sim.kinematics import BodyInputs, Trajectory, body_inputs, traje
 from assets_lib.sim.noise import AllanParams, allan_noise
 from assets_lib.sim.plans import build_plan
 from raw_schemas.manifest import SCHEMA_VERSION, Manifest, TestPlan
-from raw_schemas.units import si_factor
-
-DEG = np.pi / 180.0
-DEGPH = DEG / 3600.0
-MG = 1e-3 * 9.80665
-UG = 1e-6 * 9.80665
+from raw_schemas.units import DEG_TO_RAD as DEG, DEGPH_TO_RADPS as DEGPH, MG_TO_MPS2 as MG, UG_TO_MPS2 as UG, si_factor
 
 
 # ----------------------------------------------------------------------------------------------------------
