@@ -8,7 +8,8 @@ them (``raw_schemas.readers.ingest_frames``), segments them (``segment_run``, th
     gyro_rate_fit            fit_gyro_rate(plateaus)
     accel_multiposition_fit  fit_accel_multiposition(plateaus), fit_gyro_static(plateaus)   # no rate_fit
 
-so what a record says is what is scored. Every interval-bearing row of the three coefficient tables is compared
+so what a record says is what is scored; a run failing the plateaus stage's blocking gate (fewer than
+``MIN_PLATEAU_FRACTION`` usable plateaus) gets no record and is counted, not scored. Every interval-bearing row of the three coefficient tables is compared
 with its truth: coverage of the printed 95 % interval (``ci95_low``..``ci95_high``) and z = (value - truth) /
 stderr. Also scored, from the same result objects:
 
@@ -94,8 +95,8 @@ def _truth(rf, Kg, Eg, bg, G, Ka, Ea, ba, K2, Kc, eps=None):
     """Truth for every coefficient row of the three coefficient tables, keyed (sensor, axis, coefficient, fit)."""
     truth = {}
     for i, a in enumerate(AX):
-        ax = rf.axis(a)
-        tb = bg[i] + (G[i] @ ax.bias_reference_force_mps2 if ax.bias_reference_force_mps2 is not None else 0.0)
+        fbar = None if rf is None else rf.axis(a).bias_reference_force_mps2
+        tb = bg[i] + (G[i] @ fbar if fbar is not None else 0.0)
         e = 0.0 if eps is None else eps[i]
         truth[("gyro", a, "scale_factor", "rate")] = Kg[i]
         truth[("gyro", a, "scale_factor_pos", "rate")] = Kg[i] * (1 + e / 2)
@@ -125,15 +126,16 @@ def _row(base, sensor, axis, coefficient, fit, value, stderr, lo, hi, t, **extra
 def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> list[dict]:
     """Records for every observable, interval-bearing estimate (see the module docstring)."""
     recs = []
-    for tag, ct in (("rate", rf.coefficient_table()), ("accel", af.coefficient_table()),
-                    ("static", gs.coefficient_table())):
+    tables = ([("rate", rf.coefficient_table())] if rf is not None else []) + (
+        [("accel", af.coefficient_table()), ("static", gs.coefficient_table())] if af is not None else [])
+    for tag, ct in tables:
         for r in ct.itertuples():
             key = (r.sensor, r.axis, r.coefficient, tag)
             if key not in truth or not r.observable or not np.isfinite(r.stderr) or r.stderr <= 0:
                 continue
             recs.append(_row(base, r.sensor, r.axis, r.coefficient, tag, r.value, r.stderr, r.ci95_low, r.ci95_high,
                              truth[key], n_plateaus=r.n_plateaus))
-    d = rf.difference
+    d = None if rf is None else rf.difference
     if d is not None:
         for i, a in enumerate(AX):
             items = [("scale_factor", d.scale_factor[i], d.scale_factor_stderr[i], truth[("gyro", a, "scale_factor", "rate")])]
@@ -155,7 +157,7 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
         if nl.observable and fl and not base.get("asymmetry_injected"):
             recs.append(dict(base, sensor="gyro", axis=a, coefficient="nonlinearity_below_floor", fit="means",
                              value=nl.value, stderr=np.nan, truth=0.0, z=np.nan, covered=bool(nl.value <= float(fl.group(1)))))
-    for ax in rf.axes:
+    for ax in (rf.axes if rf is not None else ()):
         sw = ax.sweep
         nl = float(getattr(sw.nonlinearity, "value", sw.nonlinearity))  # a typed Coefficient or a float
         if np.isfinite(nl) and np.isfinite(sw.nonlinearity_floor) and not base.get("asymmetry_injected"):
@@ -177,6 +179,7 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     from assets_lib.sim.effects import sensor_chain
     from assets_lib.sim.effects.response import ScaleFactorAsymmetry
     from assets_lib.sim.simulator import DEFAULT_EFFECTS, example_device, simulate_run
+    from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
     from raw_schemas.readers import ingest_frames
 
     seed, k, quick = args
@@ -195,16 +198,20 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
                            effects=fx)
         ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
         plates[m] = segment_run(ing.manifest, ing.imu, ing.table).plateaus
-    rf = fit_gyro_rate(plates[0])  # stage gyro_rate_fit
-    af = fit_accel_multiposition(plates[1])  # stage accel_multiposition_fit
-    gs = fit_gyro_static(plates[1])  # same stage: no rate_fit, earth rate removed with nominal scale
+    # the blocking gate of the plateaus stage: a run with too few usable plateaus gets no fit and no record
+    passed = [float((~plates[m]["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION for m in (0, 1)]
+    rf = fit_gyro_rate(plates[0]) if passed[0] else None  # stage gyro_rate_fit
+    af = fit_accel_multiposition(plates[1]) if passed[1] else None  # stage accel_multiposition_fit
+    gs = fit_gyro_static(plates[1]) if passed[1] else None  # same stage: no rate_fit, nominal earth-rate removal
     g, a = dev.gyro, dev.accel
     truth = _truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
                    np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
                    np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc), eps)
     base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan,
             "asymmetry_injected": eps is not None}
-    return score(base, rf, af, gs, truth, rate_means(plates[0]))
+    gate = [dict(base, sensor="gate", axis="", coefficient=f"{kind}_run_passed", fit="gate", value=np.nan,
+                 stderr=np.nan, truth=np.nan, z=np.nan, covered=ok) for kind, ok in zip(("rate", "position"), passed)]
+    return gate + score(base, rf, af, gs, truth, rate_means(plates[0]) if passed[0] else None)
 
 
 def rate_means(p: pd.DataFrame) -> dict:
@@ -268,6 +275,8 @@ def meets(r) -> bool:
 
 
 def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    gate = df[df["fit"] == "gate"]
+    df = df[df["fit"] != "gate"]
     df = df.assign(family=family(df))
     tabs = {}
     for name, keys in (("family", ["family"]), ("family_grade", ["family", "grade"]),
@@ -278,10 +287,14 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
         if name.startswith("family_"):  # a rate-fit family depends on the rate plan only, and so on
             plan = name.removeprefix("family_")
             if plan in ("rate_plan", "pos_plan"):
-                keep = t["family"].str.contains(":rate:|:difference:") == (plan == "rate_plan")
+                keep = t["family"].str.contains(":rate:|:difference:|:means:") == (plan == "rate_plan")
                 t = t[keep]
         t["meets"] = [meets(r) for r in t.to_dict("records")]
         tabs[name] = t.reset_index(drop=True)
+    gate = gate.assign(plan=np.where(gate["coefficient"].str.startswith("rate"), gate["rate_plan"], gate["pos_plan"]))
+    rows = [{"run": c.split("_")[0], "plan": plan, "grade": g, "runs": len(d), "passed": int(d["covered"].sum())}
+            for (c, plan, g), d in gate.groupby(["coefficient", "plan", "grade"])]
+    tabs["gate"] = pd.DataFrame(rows, columns=["run", "plan", "grade", "runs", "passed"])
     return tabs
 
 
@@ -322,8 +335,14 @@ def markdown(tabs: dict, meta: dict) -> str:
             lines.append(f"| {r['family']} | {r[col]} | {r['n']} | {_fmt(r['coverage'], r['coverage_se'])} | "
                          f"{_fmt(r['mean_z'], r['mean_z_se'], '{:+.3f}')} | {_fmt(r['sd_z'], r['sd_z_se'])} | "
                          f"{'yes' if r['meets'] else 'no'} |")
-    lines += ["", ("Not scored here (bounds or statistics without coverage, or not yet in this benchmark): see "
-              "benchmarks/README.md.")]
+    g = tabs["gate"]
+    bad = g[g["passed"] < g["runs"]]
+    lines += ["", "Runs failing the plateaus stage's blocking gate (too few usable plateaus: no record, not scored): "
+              f"{int((g['runs'] - g['passed']).sum())} of {int(g['runs'].sum())}"
+              + ("; " + ", ".join(f"{r.plan} {r.grade} {r.runs - r.passed}/{r.runs}" for r in bad.itertuples())
+                 if len(bad) else "") + "."]
+    lines += ["", ("Not scored here (bounds or statistics without coverage, or not yet in this benchmark): see the "
+              "docstring of benchmarks/mc_calibration_coverage.py.")]
     return "\n".join(lines) + "\n"
 
 
