@@ -23,8 +23,8 @@ stderr. Also scored, from the same result objects:
 
 Truths: gyro rate-fit bias where g-sensitivity is not separable is b + G f_bar (the record says so in its note);
 the static gyro bias is b. Scale-factor asymmetry eps (the digital twin's ``ScaleFactorAsymmetry``, drawn per
-axis with the grade's ``ASYMMETRY_SD``) is injected into the rate run of every other plan cycle, so asymmetry is
-tested away from zero: K+- = K (1 +- eps/2), asymmetry eps; there the rate-fit bias is not scored (the straight
+axis with the grade's ``ASYMMETRY_SD``) is injected into the rate run of every other pair of plan cycles, so
+asymmetry is tested away from zero: K+- = K (1 +- eps/2), asymmetry eps; there the rate-fit bias is not scored (the straight
 line's bias absorbs (eps/2) K |w| averaged with the fit's weights). Elsewhere K+ = K- = K, asymmetry 0.
 
 Schedules: the rate plan and the position plan of trial k cycle through ``RATE_PLANS`` and ``POS_PLANS`` (the quick
@@ -189,7 +189,9 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     pos_plan = pos_names[(k // len(GRADES)) % len(pos_names)]
     dev = example_device(f"MC{seed}-{k:05d}", grade, seed=seed)
     eps = None
-    if (k // len(GRADES)) % 2 == 1:  # scale-factor asymmetry injected (digital twin effect) in every other cycle
+    # scale-factor asymmetry injected (digital twin effect) in every other pair of plan cycles, so that every
+    # rate plan meets both cases
+    if (k // (len(GRADES) * len(RATE_PLANS))) % 2 == 1:
         eps = ASYMMETRY_SD[grade] * np.random.default_rng([seed, k, 15]).standard_normal(3)
     plates = {}
     for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS))):
