@@ -12,6 +12,7 @@ from imulab import __version__
 #: sub-command name -> (module, one-line help shown by ``imulab --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("imulab.commands.simulate", "Write a simulated lab archive (the embedded default data)."),
+    "import": ("imulab.commands.import_", "Convert imu_tk, imucal, ROS bag/MCAP or profiled CSV logs into contract runs."),
     "ingest": ("imulab.commands.ingest", "Validate raw runs and convert them to canonical SI parquet."),
     "run": ("imulab.commands.run", "Materialize the Dagster pipeline over a lab archive."),
     "reprocess": ("imulab.commands.reprocess", "Recompute only stale partitions (changed code or raw input)."),
