@@ -43,8 +43,8 @@ class _Strict(BaseModel):
 
 
 class TimeSpec(_Strict):
-    """Time from a ``column`` (in ``unit``, shifted so the first sample is at ``offset_s``... kept as is unless
-    ``zero_at_first`` is true), or from a constant ``rate_hz`` (sample k at k / rate_hz)."""
+    """Time from a ``column`` (in ``unit``; shifted so the first sample is at 0 when ``zero_at_first``), or from
+    a constant ``rate_hz`` (sample k at k / rate_hz)."""
 
     column: str | None = None
     unit: Literal["s", "ms", "us", "ns"] = "s"
@@ -117,7 +117,8 @@ def _read_table(path: Path, prof: ImportProfile) -> pd.DataFrame:
         return pd.read_parquet(path)
     try:
         return pd.read_csv(path, sep=prof.delimiter, comment=prof.comment, skiprows=prof.skip_rows,
-                           header=0 if prof.header else None, names=prof.column_names, skipinitialspace=True)
+                           header=0 if prof.header else None, names=prof.column_names, skipinitialspace=True,
+                           keep_default_na=False, na_values=[""])
     except (pd.errors.ParserError, UnicodeDecodeError) as e:
         raise RawDataError(path.name, "file", "a delimited text table as the profile describes", str(e).splitlines()[0]) from None
 
@@ -129,8 +130,10 @@ def _column(df: pd.DataFrame, col: str, name: str, line_offset: int) -> np.ndarr
     bad = np.flatnonzero(~np.isfinite(v))
     if bad.size:
         i = int(bad[0])
+        v0 = df[col].iloc[i]
+        v0 = v0.item() if isinstance(v0, np.generic) else v0
         raise RawDataError(name, f"row {i + 1} (line {i + 1 + line_offset}), column {col!r}", "a finite number",
-                           f"{df[col].iloc[i]!r} ({bad.size} such rows)")
+                           f"{v0!r} ({bad.size} such row{'s' if bad.size > 1 else ''})")
     return v
 
 
@@ -143,7 +146,7 @@ def read(sources: list[Path], options: dict) -> ImportedSession:
     prof = load_profile(prof_path)
     path = sources[0]
     df = _read_table(path, prof)
-    off = 1 + prof.skip_rows + (1 if prof.header else 0)
+    off = prof.skip_rows + (1 if prof.header else 0)
     if prof.time.column is not None:
         t = _column(df, prof.time.column, path.name, off) * TIME_UNITS_TO_S[prof.time.unit]
         if prof.time.zero_at_first:

@@ -1,0 +1,112 @@
+"""Calibrate one table-free run (test kind ``tablefree``): choose the procedure from the plan, find the poses,
+fit, and return one coefficient table with uncertainties and observability.
+
+* Plan with six ``pose`` steps carrying ``up_axis_body`` (+x ... -z) and three ``rotation`` steps about x, y, z:
+  the Ferraris closed form (:mod:`assets_lib.calibration.ferraris`) on the annotated sections.
+* Otherwise (``free`` steps, optionally a leading ``pose`` = the initial static interval): static poses are
+  detected (:mod:`assets_lib.calibration.poses`; level from the initial interval when declared), the
+  accelerometer is fitted to the pose magnitudes (Tedaldi et al. 2014, :mod:`assets_lib.calibration.tablefree`)
+  and the gyro by integration between poses (:mod:`assets_lib.calibration.gyro_integration`) with its bias the
+  mean of the initial static interval (or of all poses when none is declared; earth rate then enters the bias).
+
+Inputs are the canonical (SI) IMU frame; coefficients are in SI per canonical unit (for channels declared in
+counts, canonical = counts x lsb, so scale factors are relative to the nominal lsb).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from assets_lib.calibration.ferraris import ROTATION_SECTIONS, STATIC_SECTIONS, ferraris_fit
+from assets_lib.calibration.gyro_integration import fit_gyro_integration
+from assets_lib.calibration.poses import StaticPoses, detect_static_poses
+from assets_lib.calibration.tablefree import fit_accel_poses, pose_means
+from assets_lib.coefficient import Coefficient
+from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
+
+#: imu_tk's defaults: 1 s (101-sample) window, 100 samples averaged per pose, threshold factor swept 2..10
+WINDOW_S = 1.01
+POSE_SAMPLES = 100
+K_SWEEP = (2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0)
+MIN_POSES = 12
+
+
+@dataclass(frozen=True)
+class TableFreeResult:
+    method: str                              # "ferraris" or "tedaldi"
+    coefficients: dict                       # name -> Coefficient
+    poses: StaticPoses | None
+    accel_fit: object
+    gyro_fit: object
+    diagnostics: dict = field(default_factory=dict)
+    warnings: tuple = ()
+
+    def table(self) -> pd.DataFrame:
+        rows = [{"term": k, "value": c.value, "stderr": c.stderr, "unit": c.unit, "observable": c.observable}
+                for k, c in self.coefficients.items()]
+        return pd.DataFrame(rows, columns=["term", "value", "stderr", "unit", "observable"])
+
+
+def _ferraris_sections(plan) -> dict | None:
+    sec = {}
+    for s in plan.steps:
+        if s.kind == "pose" and s.up_axis_body:
+            sec[f"{s.up_axis_body[1]}_{'p' if s.up_axis_body[0] == '+' else 'a'}"] = s
+        elif s.kind == "rotation" and s.rotation_axis_body:
+            sec[f"{s.rotation_axis_body}_rot"] = s
+    return sec if all(k in sec for k in STATIC_SECTIONS + ROTATION_SECTIONS) else None
+
+
+def _slice(t, s) -> slice:
+    return slice(int(np.searchsorted(t, s.start_s)), int(np.searchsorted(t, s.end_s - 1e-9)))
+
+
+def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> TableFreeResult:
+    t = imu["time_s"].to_numpy(float)
+    acc = imu[list(ACCEL_COLUMNS)].to_numpy(float)
+    gyr = imu[list(GYRO_COLUMNS)].to_numpy(float)
+    plan = manifest.plan
+    sec = _ferraris_sections(plan)
+    if sec is not None:
+        angle = {s.rotation_angle_deg for k, s in sec.items() if k.endswith("_rot")}
+        if len(angle) != 1 or None in angle:
+            raise ValueError("Ferraris rotations need one common rotation_angle_deg")
+        sl = {k: _slice(t, s) for k, s in sec.items()}
+        fit = ferraris_fit({k: (acc[v], np.degrees(gyr[v])) for k, v in sl.items()}, manifest.sample_rate_hz,
+                           gravity=gravity_mps2, expected_angle_deg=angle.pop(),
+                           from_acc_unit="m/s^2 (nominal)", from_gyr_unit="deg/s (nominal)")
+        norms = np.linalg.norm(fit.calibrate_acc(np.array([acc[sl[k]].mean(0) for k in STATIC_SECTIONS])), axis=1)
+        return TableFreeResult("ferraris", fit.coefficients(), None, fit, fit,
+                               {"static_norm_rms_mps2": float(np.sqrt(np.mean((norms - gravity_mps2) ** 2)))})
+    ref_steps = [s for s in plan.steps if s.kind == "pose"]
+    ref = _slice(t, ref_steps[0]) if ref_steps else None
+    best = None
+    for k in K_SWEEP:  # imu_tk: the threshold factor with the smallest accelerometer residual wins
+        poses = detect_static_poses(t, acc, window_s=WINDOW_S, k=k, reference=ref)
+        if poses.count < MIN_POSES:
+            continue
+        m = pose_means(t, acc, poses.starts, poses.ends, POSE_SAMPLES)
+        af = fit_accel_poses(m, gravity_mps2, input_unit="m/s^2 (nominal)")
+        if best is None or af.rms_mps2 < best[2].rms_mps2:
+            best = (k, poses, af, m)
+    if best is None:
+        raise ValueError(f"fewer than {MIN_POSES} static poses found for every threshold factor {K_SWEEP}: "
+                         "not enough poses for a table-free calibration")
+    k, poses, af, m = best
+    bias = gyr[ref].mean(axis=0) if ref is not None else pose_means(t, gyr, poses.starts, poses.ends).mean(axis=0)
+    warnings = () if ref is not None else ("no initial static interval declared: gyro bias = mean over all poses "
+                                           "(earth rate projected on the mean attitude enters it)",)
+    gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
+                              input_unit="rad/s (nominal)")
+    n_ref = (ref.stop - ref.start) if ref is not None else 0
+    bias_se = gyr[ref].std(axis=0, ddof=1) / np.sqrt(n_ref) if ref is not None else np.full(3, np.nan)
+    coefs = {f"accel_{n}": c for n, c in af.coefficients.items()}
+    coefs.update({f"gyro_{n}": c for n, c in gf.coefficients.items()})
+    for i, ax in enumerate("xyz"):
+        coefs[f"gyro_b_{ax}"] = Coefficient(float(bias[i]), float(bias_se[i]), "rad/s (nominal)")
+    diag = {"threshold_factor": k, "n_poses": poses.count, "accel_norm_rms_mps2": af.rms_mps2,
+            "gyro_direction_rms_rad": gf.rms_rad, "unobservable": list(af.unobservable) + list(gf.unobservable)}
+    return TableFreeResult("tedaldi", coefs, poses, af, gf, diag, warnings)
