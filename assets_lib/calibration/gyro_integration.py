@@ -136,7 +136,8 @@ def fit_gyro_integration(t_s: np.ndarray, gyro_raw: np.ndarray, starts, ends, gr
     s2 = float(np.sum(r * r) / dof) if dof > 0 else np.nan
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
-    unobs = observability(sol.jac, names)
+    typical = np.r_[np.ones(6), np.abs(p[6:9]), (1.0 / np.abs(p[6:9])) if fit_bias else []]  # bias: 1 rad/s
+    unobs = observability(sol.jac, names, typical)
     units = ("1",) * 6 + (f"rad/s per {input_unit}",) * 3 + (input_unit,) * 3
     coefs = {n: (Coefficient.unobservable(units[i]) if n in unobs or dof <= 0 else Coefficient(float(p[i]), float(se[i]), units[i]))
              for i, n in enumerate(names)}

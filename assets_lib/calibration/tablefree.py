@@ -11,7 +11,7 @@ differs at second order). Start: a linear axis-aligned ellipsoid fit, so no nomi
 Uncertainty: the Gauss-Newton covariance s^2 (J^T J)^-1 at the optimum, s^2 = RSS / (n_poses - 9) (the scatter
 of the pose magnitudes, including model discrepancy, sets the scale). Observability: a parameter is reported
 unobservable when the Jacobian has a singular value below ``rcond`` x the largest along its direction (e.g.
-every pose with the same axis up); at least 9 poses with distinct attitudes are needed, 12+ recommended.
+every pose with one axis horizontal); at least 9 poses with distinct attitudes are needed, 12+ recommended.
 """
 
 from __future__ import annotations
@@ -72,20 +72,19 @@ def ellipsoid_start(means: np.ndarray, g: float) -> np.ndarray:
     return np.r_[0.0, 0.0, 0.0, k, c + bz * s]
 
 
-def observability(jac: np.ndarray, names, rcond: float = 1e-7) -> tuple:
-    """Names of parameters lying along near-null directions of the (column-scaled) Jacobian."""
-    scale = np.linalg.norm(jac, axis=0)
-    scale[scale == 0] = 1.0
-    _, sv, vt = np.linalg.svd(jac / scale, full_matrices=False)
+def observability(jac: np.ndarray, names, typical: np.ndarray, rcond: float = 1e-3) -> tuple:
+    """Names of parameters along near-null directions of the Jacobian with columns scaled by each parameter's
+    ``typical`` range (1 for a misalignment in rad, |k| for a scale, a full-scale input for a bias), so that a
+    singular value compares how much a plausible change of a term moves the residuals: a direction moving them
+    less than ``rcond`` x the best-determined one is reported unobservable (its standard error would exceed the
+    range)."""
+    js = jac * np.asarray(typical, float)[None, :]
+    _, sv, vt = np.linalg.svd(js, full_matrices=True)
+    sv = np.r_[sv, np.zeros(vt.shape[0] - sv.size)]
     bad = set()
-    if sv.size < len(names):
-        vt_null = np.linalg.svd(jac / scale)[2][sv.size:]
-    else:
-        vt_null = vt[sv < rcond * sv.max()]
-    for v in vt_null:
-        bad.update(names[i] for i in np.flatnonzero(np.abs(v) > 0.1))
-    if np.any(np.linalg.norm(jac, axis=0) == 0):
-        bad.update(names[i] for i in np.flatnonzero(np.linalg.norm(jac, axis=0) == 0))
+    for s_i, v in zip(sv, vt):
+        if s_i < rcond * sv.max():
+            bad.update(names[i] for i in np.flatnonzero(np.abs(v) > 0.3))
     return tuple(sorted(bad))
 
 
@@ -104,7 +103,8 @@ def fit_accel_poses(pose_means: np.ndarray, gravity_mps2: float, *, input_unit: 
     p = sol.x
     r = resid(p)
     dof = n - p.size
-    unobs = observability(sol.jac, PARAM_NAMES) if n >= p.size else PARAM_NAMES
+    typical = np.r_[np.ones(3), np.abs(p[3:6]), g / np.abs(p[3:6])]
+    unobs = observability(sol.jac, PARAM_NAMES, typical) if n >= p.size else PARAM_NAMES
     s2 = float(r @ r / dof) if dof > 0 else np.nan
     try:
         cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
