@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "verify": ("imulab.commands.verify", "Recompute a calibration record from the raw archive and check it."),
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
+    "repeatability": ("imulab.commands.repeatability", "Turn-on bias and noise-term repeatability of static runs."),
     "diagnose": ("imulab.commands.diagnose", "Sim-to-real gap diagnosis of a calibrated run."),
 }
 
