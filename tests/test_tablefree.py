@@ -178,3 +178,25 @@ def test_outliers_do_not_collapse_on_interpolated_quantized_samples():
     assert w.converged and w.rejected_fraction < 1e-3
     y[2000, 1] = 8.0  # a real spike is still caught
     assert not reject_outliers_window(t, y).keep[2000]
+
+
+def test_ferraris_second_session_end_to_end_matches_imucal_output(shared_data, tmp_path):
+    """example_ferraris_session.csv (102.4 Hz, deg/s and m/s^2) imported with its section list, calibrated from
+    its own sections; the first 50 calibrated rows equal imucal's ferraris_example.csv."""
+    import pandas as pd
+
+    d = shared_data / "imucal_example"
+    out = import_run("imucal", [d / "example_ferraris_session.csv"], tmp_path, RunMeta("bmi160", "s2"),
+                     {"sample_rate_hz": "102.4", "sections": str(d / "example_ferraris_session_list.json")})
+    run = ingest_run(out)
+    assert len(run.imu) == 10376  # every row kept; only the nine sections are steps
+    res = calibrate_tablefree(run.manifest, run.imu, 9.81)
+    assert res.method == "ferraris"
+    imu = run.imu.iloc[:50]
+    acc = imu[["accel_x_mps2", "accel_y_mps2", "accel_z_mps2"]].to_numpy()
+    gyr = np.degrees(imu[["gyro_x_radps", "gyro_y_radps", "gyro_z_radps"]].to_numpy())
+    acc_cal = res.accel_fit.calibrate_acc(acc)
+    gyr_cal = res.accel_fit.calibrate_gyr(gyr, acc_cal)
+    ref = pd.read_csv(d / "ferraris_example.csv")
+    np.testing.assert_allclose(acc_cal, ref[["acc_x", "acc_y", "acc_z"]].to_numpy(), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(gyr_cal, ref[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(), rtol=1e-9, atol=1e-9)

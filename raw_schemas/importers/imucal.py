@@ -10,6 +10,10 @@ becomes a plan step: ``pose`` with ``up_axis_body`` for ``*_p`` / ``*_a``, ``rot
 ``*_rot``. Integer-valued data are counts (options ``accel_lsb``/``accel_lsb_unit``, ``gyro_lsb``/
 ``gyro_lsb_unit``); otherwise options ``accel_unit`` (default m/s^2) and ``gyro_unit`` (default deg/s).
 Sections must be contiguous in the counter: a hole inside a section is a gap the contract refuses.
+
+A continuous recording without a ``part`` column (imucal's ``example_ferraris_session.csv``) is imported with
+its section list (option ``sections=LIST.json``, imucal's ``{"x_p": {"start": s, "end": e}, ...}`` with
+``end`` exclusive, as imucal slices ``data.iloc[start:end]``): every row is kept, the sections become steps.
 """
 
 from __future__ import annotations
@@ -33,6 +37,33 @@ def _spec(vals: np.ndarray, fam: str, options: dict, file: str) -> dict:
     return {"unit": options.get(f"{fam}_unit", "m/s^2" if fam == "accel" else "deg/s")}
 
 
+def _label_from_section_list(df: pd.DataFrame, path: Path, data_name: str) -> pd.DataFrame:
+    import json
+
+    try:
+        sec = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RawDataError(str(path), "", "a section list JSON (option 'sections')", "no such file") from None
+    except json.JSONDecodeError as e:
+        raise RawDataError(path.name, f"line {e.lineno}", "valid JSON", e.msg) from None
+    part = np.full(len(df), "", dtype=object)
+    for k in SECTIONS:
+        if k not in sec:
+            raise RawDataError(path.name, f"section {k!r}", f"all nine sections {list(SECTIONS)}", "missing")
+        try:
+            a, b = int(sec[k]["start"]), int(sec[k]["end"])
+        except (KeyError, TypeError, ValueError):
+            raise RawDataError(path.name, f"section {k!r}", "{'start': int, 'end': int}", repr(sec[k])) from None
+        if not 0 <= a < b <= len(df):
+            raise RawDataError(path.name, f"section {k!r}", f"0 <= start < end <= {len(df)} rows of {data_name}", f"{a}..{b}")
+        if np.any(part[a:b] != ""):
+            raise RawDataError(path.name, f"section {k!r}", "sections that do not overlap", f"{a}..{b} overlaps another")
+        part[a:b] = k
+    out = df.copy()
+    out["part"] = part
+    return out
+
+
 def read(sources: list[Path], options: dict) -> ImportedSession:
     if len(sources) != 1:
         raise RawDataError("(sources)", "command line", "one annotated session CSV", f"{len(sources)} files")
@@ -41,13 +72,15 @@ def read(sources: list[Path], options: dict) -> ImportedSession:
         raise RawDataError(str(path), "", "an existing file", "no such file")
     df = pd.read_csv(path)
     name = path.name
+    if "part" not in df.columns and "sections" in options:
+        df = _label_from_section_list(df, Path(options["sections"]), name)
     if "part" not in df.columns:
         raise RawDataError(name, "header", "a 'part' column naming each row's section (imucal annotated session)",
                            f"columns {list(df.columns)}")
     missing = [c for c in DATA_COLUMNS if c not in df.columns]
     if missing:
         raise RawDataError(name, "header", f"columns {list(DATA_COLUMNS)}", f"missing {missing}")
-    bad = ~df["part"].isin(SECTIONS)
+    bad = ~df["part"].isin(SECTIONS + ("",))
     if bad.any():
         i = int(np.flatnonzero(bad.to_numpy())[0])
         raise RawDataError(name, f"row {i + 1} (line {i + 2}), column 'part'", f"one of {list(SECTIONS)}", repr(df['part'].iloc[i]))
@@ -89,6 +122,8 @@ def read(sources: list[Path], options: dict) -> ImportedSession:
     steps = []
     for a, b in zip(starts, ends):
         p = str(parts[a])
+        if not p:
+            continue
         if p in seen:
             raise RawDataError(name, f"row {a + 1} (after sorting by '{counter}')", f"section {p!r} in one contiguous block",
                                "a second block")
