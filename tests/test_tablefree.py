@@ -200,3 +200,16 @@ def test_ferraris_second_session_end_to_end_matches_imucal_output(shared_data, t
     ref = pd.read_csv(d / "ferraris_example.csv")
     np.testing.assert_allclose(acc_cal, ref[["acc_x", "acc_y", "acc_z"]].to_numpy(), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(gyr_cal, ref[["gyr_x", "gyr_y", "gyr_z"]].to_numpy(), rtol=1e-9, atol=1e-9)
+
+
+def test_coefficient_table_rows(xsens_run):
+    from assets_lib.calibration.fit_report import COEFFICIENT_COLUMNS
+    from assets_lib.calibration.tablefree_session import coefficient_table
+
+    run, res = xsens_run
+    t = coefficient_table(res, "xsens", "demo", len(run.imu))
+    assert list(t.columns[: len(COEFFICIENT_COLUMNS)]) == COEFFICIENT_COLUMNS
+    # accel: 3 scales, 3 biases, 3 misalignments (upper triangle); gyro: 3 + 3 + 6
+    assert len(t) == 9 + 12 and t["observable"].all()
+    k = t[(t.sensor == "gyro") & (t.coefficient == "scale_factor")].set_index("axis")["value"]
+    np.testing.assert_allclose(k.to_numpy() * GYRO_LSB, IMUTK_GYRO_K, rtol=2e-3)

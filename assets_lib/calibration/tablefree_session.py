@@ -110,3 +110,61 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
     diag = {"threshold_factor": k, "n_poses": poses.count, "accel_norm_rms_mps2": af.rms_mps2,
             "gyro_direction_rms_rad": gf.rms_rad, "unobservable": list(af.unobservable) + list(gf.unobservable)}
     return TableFreeResult("tedaldi", coefs, poses, af, gf, diag, warnings)
+
+
+AXES = "xyz"
+_T_NAMES = {(0, 1): "t01", (0, 2): "t02", (1, 0): "t10", (1, 2): "t12", (2, 0): "t20", (2, 1): "t21"}
+
+
+def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_samples: int) -> pd.DataFrame:
+    """COEFFICIENT TABLE rows (``fit_report.COEFFICIENT_COLUMNS``) of a table-free calibration: per sensor and
+    axis ``scale_factor`` (relative to the nominal lsb), ``bias`` (SI), ``misalignment_<i><j>`` (rad, small
+    angle), and for Ferraris ``g_sensitivity_<j>`` of the gyro."""
+    from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row
+
+    rows = []
+    n_p = result.poses.count if result.poses is not None else 6
+    common = dict(device_id=device_id, run_id=run_id, n_plateaus=n_p, n_samples=n_samples)
+    if result.method == "tedaldi":
+        c = result.coefficients
+        for sensor in ("accel", "gyro"):
+            for i, a in enumerate(AXES):
+                k = c[f"{sensor}_k_{a}"]
+                rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="scale_factor", value=k.value,
+                                            stderr=k.stderr, observable=k.observable, method="tedaldi", **common))
+                b = c[f"{sensor}_b_{a}"]
+                rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="bias", value=b.value, stderr=b.stderr,
+                                            observable=b.observable and np.isfinite(b.stderr), method="tedaldi",
+                                            note="initial static interval mean" if sensor == "gyro" else "", **common))
+                for j, aj in enumerate(AXES):
+                    name = _T_NAMES.get((i, j))
+                    key = f"{sensor}_{name}" if name else None
+                    if key in c:
+                        m = c[key]
+                        rows.append(coefficient_row(sensor=sensor, axis=a, coefficient=f"misalignment_{a}{aj}",
+                                                    value=m.value, stderr=m.stderr, observable=m.observable,
+                                                    method="tedaldi", **common))
+    else:
+        f = result.accel_fit
+        d2r = np.pi / 180.0
+        note = "imucal convention: R_g diagonal sign carries the rotation sense against expected_angle"
+        for sensor, K, R, b, sK, sR, sb, fac in (
+                ("accel", f.K_a, f.R_a, f.b_a, f.stderr["K_a"], f.stderr["R_a"], f.stderr["b_a"], 1.0),
+                ("gyro", f.K_g, f.R_g, f.b_g, f.stderr["K_g"], f.stderr["R_g"], f.stderr["b_g"], d2r)):
+            for i, a in enumerate(AXES):
+                rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="scale_factor", value=K[i, i],
+                                            stderr=sK[i, i], observable=True, method="ferraris", **common))
+                rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="bias", value=b[i] * fac,
+                                            stderr=sb[i] * fac, observable=True, method="ferraris", **common))
+                sgn = np.sign(R[i, i])
+                for j, aj in enumerate(AXES):
+                    if j != i:
+                        rows.append(coefficient_row(sensor=sensor, axis=a, coefficient=f"misalignment_{a}{aj}",
+                                                    value=sgn * R[i, j], stderr=sR[i, j], observable=True,
+                                                    method="ferraris", note=note if sensor == "gyro" else "", **common))
+        for i, a in enumerate(AXES):
+            for j, aj in enumerate(AXES):
+                rows.append(coefficient_row(sensor="gyro", axis=a, coefficient=f"g_sensitivity_{aj}",
+                                            value=f.K_ga[i, j] * d2r / f.K_g[i, i], stderr=f.stderr["K_ga"][i, j] * d2r,
+                                            observable=True, method="ferraris", **common))
+    return coefficient_frame(rows)
