@@ -64,6 +64,22 @@ def _slice(t, s) -> slice:
     return slice(int(np.searchsorted(t, s.start_s)), int(np.searchsorted(t, s.end_s - 1e-9)))
 
 
+def _mean_stderr(x: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Standard error of a window mean per column: sqrt(sigma_A^2(T)) of the fitted IEEE 952 model at the window
+    length T (IEEE Std 952-1997 C.1; under bias instability sigma / sqrt(n) is too small)."""
+    from assets_lib.noise.allan import allan_deviation
+    from assets_lib.noise.identification import fit_noise
+
+    out = []
+    for j in range(x.shape[1]):
+        r = allan_deviation(x[:, j], rate_hz, "octave")
+        try:
+            out.append(float(np.sqrt(fit_noise(r, sensor="si").model_avar(np.array([x.shape[0] / rate_hz]))[0])))
+        except ValueError:  # too short for a noise fit
+            out.append(float(np.std(x[:, j], ddof=1) / np.sqrt(x.shape[0])))
+    return np.array(out)
+
+
 def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> TableFreeResult:
     t = imu["time_s"].to_numpy(float)
     acc = imu[list(ACCEL_COLUMNS)].to_numpy(float)
@@ -102,7 +118,7 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
     gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
                               input_unit="rad/s (nominal)")
     n_ref = (ref.stop - ref.start) if ref is not None else 0
-    bias_se = gyr[ref].std(axis=0, ddof=1) / np.sqrt(n_ref) if ref is not None else np.full(3, np.nan)
+    bias_se = _mean_stderr(gyr[ref], manifest.sample_rate_hz) if ref is not None and n_ref >= 64 else np.full(3, np.nan)
     coefs = {f"accel_{n}": c for n, c in af.coefficients.items()}
     coefs.update({f"gyro_{n}": c for n, c in gf.coefficients.items()})
     for i, ax in enumerate("xyz"):
