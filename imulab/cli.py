@@ -21,6 +21,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
     "repeatability": ("imulab.commands.repeatability", "Turn-on bias and noise-term repeatability of static runs."),
     "diagnose": ("imulab.commands.diagnose", "Sim-to-real gap diagnosis of a calibrated run."),
+    "apply": ("imulab.commands.apply", "Calibrate IMU data with a calibration record or device calibration."),
+    "records": ("imulab.commands.records", "List a device's records; pick the one valid at a date (staleness, drift)."),
+    "export": ("imulab.commands.export", "Export a calibration for Kalibr/OpenVINS, imucal, or firmware (JSON, C header)."),
 }
 
 
