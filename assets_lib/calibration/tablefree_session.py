@@ -184,3 +184,35 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
                                             value=f.K_ga[i, j] * d2r / f.K_g[i, i], stderr=f.stderr["K_ga"][i, j] * d2r,
                                             observable=True, method="ferraris", **common))
     return coefficient_frame(rows)
+
+
+def plot_tablefree_png(imu: pd.DataFrame, result: TableFreeResult, title: str = "", max_points: int = 20000) -> bytes:
+    """Calibrated specific force with the static poses shaded (Tedaldi) or the raw accel (Ferraris), as PNG."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    t = imu["time_s"].to_numpy(float)
+    acc = imu[list(ACCEL_COLUMNS)].to_numpy(float)
+    step = max(1, t.size // max_points)
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    if result.method == "tedaldi":
+        ax.plot(t[::step], result.accel_fit.apply(acc[::step]), lw=0.5)
+        for a, b in zip(result.poses.starts, result.poses.ends):
+            ax.axvspan(t[a], t[b - 1], color="g", alpha=0.15, lw=0)
+        sub = (f"{result.poses.count} static poses, |f|-g RMS {1e3 * result.accel_fit.rms_mps2:.2f} mm/s^2, "
+               f"gyro direction RMS {1e3 * result.gyro_fit.rms_rad:.2f} mrad")
+    else:
+        ax.plot(t[::step], result.accel_fit.calibrate_acc(acc[::step]), lw=0.5)
+        sub = f"Ferraris, static |f|-g RMS {1e3 * result.diagnostics['static_norm_rms_mps2']:.2f} mm/s^2"
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("calibrated specific force [m/s^2]")
+    ax.set_title(f"{title}  {sub}".strip(), fontsize=9)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    plt.close(fig)
+    return buf.getvalue()
