@@ -204,3 +204,33 @@ def test_imucal_session_import(shared_data, tmp_path):
     assert steps[0].up_axis_body == "+x" and steps[1].up_axis_body == "-x"
     assert steps[6].rotation_axis_body == "x" and steps[6].rotation_angle_deg == -360.0
     assert len(run.imu) == 9414
+
+
+def test_profile_parquet_with_rate_and_tablefree_kind(tmp_path):
+    rng = np.random.default_rng(5)
+    n = 300
+    df = pd.DataFrame({c: rng.standard_normal(n) for c in ("wx", "wy", "wz", "fx", "fy", "fz")})
+    src = tmp_path / "log.parquet"
+    df.to_parquet(src)
+    prof = {"time": {"rate_hz": 50.0}, "test_kind": "tablefree",
+            "channels": {**{f"gyro_{a}": {"column": f"w{a}", "unit": "rad/s"} for a in "xyz"},
+                         **{f"accel_{a}": {"column": f"f{a}", "unit": "g"} for a in "xyz"}}}
+    (tmp_path / "p.json").write_text(json.dumps(prof))
+    run = ingest_run(import_run("profile", [src], tmp_path / "land", RunMeta("d", "r"), {"profile": str(tmp_path / "p.json")}))
+    assert run.manifest.test_kind == "tablefree" and run.manifest.plan.steps[0].kind == "free"
+    assert run.manifest.sample_rate_hz == 50.0
+    np.testing.assert_allclose(run.imu.accel_z_mps2, df.fz * 9.80665, rtol=1e-12)
+
+
+def test_cli_import_imu_tk_writes_a_run(shared_data, tmp_path):
+    d = shared_data / "imu_tk_xsens"
+    r = CliRunner().invoke(main, ["import", "imu_tk", str(d / "xsens_acc.mat"), str(d / "xsens_gyro.mat"),
+                                  "--landing", str(tmp_path), "--device-id", "xsens", "--run-id", "demo",
+                                  "--gravity-mps2", "9.81744", "-o", "accel_lsb=0.0024", "-o", "gyro_lsb=0.00016",
+                                  "-o", "initial_static_s=50"])
+    assert r.exit_code == 0, r.output
+    run = ingest_run(tmp_path / "xsens" / "demo")
+    steps = run.manifest.plan.steps
+    assert [s.kind for s in steps] == ["pose", "free"] and steps[0].end_s == pytest.approx(50.0)
+    assert run.manifest.site.gravity_mps2 == 9.81744
+    assert run.imu.time_s.iloc[0] == pytest.approx(0.02984)  # the IMU clock is kept
