@@ -29,7 +29,7 @@ from assets_lib.records import (
     load_records_dir,
     record_file_bytes,
 )
-from pipelines.storage import VersionedStore
+from assets_lib.store import VersionedStore
 
 DEVICE = "TAC-007"
 RUNS = ("pc00-rate", "pc01-rate", "pc02-rate")

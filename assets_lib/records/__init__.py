@@ -48,6 +48,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from assets_lib.store.view import StoreView  # noqa: F401 - the one read view (re-exported for readers of records)
+
 RECORD_SCHEMA_VERSION = "1.0"
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "raw_schemas" / "record.schema.json"
 COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit")
@@ -145,34 +147,6 @@ def utc_now_iso() -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # Building the content of one run's record from stored stage outputs
 # ---------------------------------------------------------------------------------------------------------------
-class StoreView:
-    """Read access to given versions of a ``VersionedStore`` (what ``StageInputs`` offers, without dagster)."""
-
-    def __init__(self, store, versions: dict[str, str]):
-        self.store = store
-        self.versions = versions
-
-    def has(self, asset: str, key: str) -> bool:
-        return f"{asset}/{key}" in self.versions
-
-    def version_dir(self, asset: str, key: str) -> Path:
-        return self.store.version_dir(asset, key, self.versions[f"{asset}/{key}"])
-
-    def table(self, asset: str, name: str, key: str, columns=None) -> pd.DataFrame:
-        return pd.read_parquet(self.version_dir(asset, key) / f"{name}.parquet", columns=columns)
-
-    def has_table(self, asset: str, name: str, key: str) -> bool:
-        return self.has(asset, key) and (self.version_dir(asset, key) / f"{name}.parquet").is_file()
-
-    def meta(self, asset: str, key: str) -> dict:
-        return json.loads((self.version_dir(asset, key) / "meta.json").read_text())
-
-    def pngs(self, asset: str, key: str) -> dict[str, bytes]:
-        if not self.has(asset, key):
-            return {}
-        return {f"{asset}: {p.stem}": p.read_bytes() for p in sorted(self.version_dir(asset, key).glob("*.png"))}
-
-
 def _stage_chain(view: StoreView, key: str) -> dict:
     """asset -> {version, code_version} for every stage the run's outputs were computed from (walked via meta)."""
     out: dict[str, dict] = {}

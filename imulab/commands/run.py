@@ -38,7 +38,11 @@ def command(landing, store, data_dir, dagster_home, verbose):
     if not verbose:
         warnings.filterwarnings("ignore")
     from pipelines.definitions import build_definitions
-    from pipelines.launch import materialize_archive, open_instance, register_landed_runs
+    from pipelines.launch import (
+        materialize_archive,
+        open_instance,
+        register_landed_runs,
+    )
     from pipelines.resources import LabArchive
 
     defs = build_definitions(str(landing), str(store))

@@ -3,9 +3,8 @@
 For the record and (unless ``--shallow``) every earlier record of the same device:
 1. the record validates against ``raw_schemas/record.schema.json`` and its ``record_sha256`` is the hash of its content;
 2. every raw file of the run folder is re-hashed and compared with the recorded sha256 (changed, missing, extra);
-3. ingestion and the fits are re-run from the raw folder through the stages' own pure compute functions
-   (``pipelines.stage.STAGES``), into a temporary VersionedStore (never the production store), and the record's
-   content is rebuilt from it with the same code that built it (``assets_lib.records.run_content``); every coefficient
+3. ingestion and the fits are re-run from the raw folder by the pipeline's own engine (``assets_lib.stages``),
+   into a temporary VersionedStore (never the production store), and the record's content is rebuilt from it with the same code that built it (``assets_lib.records.run_content``); every coefficient
    (value, stderr and lab values to a relative tolerance of 1e-9 of max(|value|, stderr): far above float
    round-off from a different BLAS or summation order, far below any real change), unit, test condition, stage
    version and noise term must match;
@@ -69,46 +68,19 @@ def raw_file_problems(record: dict, run_dir: Path) -> list[str]:
 
 
 def recompute_capture(key: str, landing: Path, store, stages: set[str]) -> dict[str, str]:
-    """Run the capture-level stages in ``stages`` (and what they need) for ``key`` into ``store``; returns the
-    versions written. Mirrors ``pipelines.stage.run_stage`` without Dagster."""
-    import pipelines.definitions  # noqa: F401 - registers every stage in STAGES
-    from pipelines.resources import LabArchive
-    from pipelines.stage import STAGES, StageInputs, expected_version, input_versions
+    """Run the capture-level ``stages`` (and what they need) for ``key`` into ``store`` with the pipeline's own
+    engine (``assets_lib.stages.engine.recompute_capture``); returns the versions written."""
+    from assets_lib.stages.engine import recompute_capture as engine_recompute
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive
 
-    needed, todo = set(), [s for s in stages if s in STAGES]
-    while todo:
-        s = todo.pop()
-        if s not in needed and STAGES[s].level == "capture":
-            needed.add(s)
-            todo += list(STAGES[s].upstream)
-    archive = LabArchive(landing_dir=str(landing))
-    versions = {}
-    for name, spec in STAGES.items():  # registration order is dependency order
-        if name not in needed:
-            continue
-        inputs = input_versions(spec, key, store, archive)
-        if inputs is None:
-            continue
-        if spec.applies_to is not None:
-            kind = store.read_meta("ingested_run", key).get("test_kind") if f"ingested_run/{key}" in versions else None
-            if kind not in spec.applies_to:
-                continue
-        version = expected_version(spec, inputs)
-        out = spec.compute(key, StageInputs(store, archive, key, inputs))
-        if out is None:
-            continue
-        files = dict(out.files)
-        files.update({f"{n}.png": png for n, png in out.plots.items()})
-        store.write(spec.name, key, version, out.tables,
-                    meta={"code_version": spec.code_version, "inputs": inputs, **out.meta}, files=files)
-        versions[f"{name}/{key}"] = version
-    return versions
+    return engine_recompute(STAGES, key, store, LandingArchive(Path(landing)), stages)
 
 
 def recompute_problems(record: dict, landing: Path, rtol: float) -> tuple[list[str], int]:
     """Rebuild the record's content from the raw archive in a temporary store; named differences and the number of
     coefficients compared."""
-    from pipelines.storage import VersionedStore
+    from assets_lib.store import VersionedStore
 
     c = record["content"]
     key = f"{c['device']['id']}__{c['run']['run_id']}"
@@ -129,7 +101,7 @@ def chain_source(record_path: Path, device: str, store_dir: Path) -> Path | None
     device's current ``calibration_record`` version in the store."""
     if (record_path.parent / "records.parquet").is_file():
         return record_path.parent
-    from pipelines.storage import VersionedStore
+    from assets_lib.store import VersionedStore
 
     st = VersionedStore(store_dir)
     v = st.current_version("calibration_record", device)
@@ -138,7 +110,7 @@ def chain_source(record_path: Path, device: str, store_dir: Path) -> Path | None
 
 def archive_runs(landing: Path, store_dir: Path, device: str) -> list[tuple[str, str]]:
     """(run_id, start_time_utc) of the device's runs that are in the archive and were ingested into the store."""
-    from pipelines.storage import VersionedStore
+    from assets_lib.store import VersionedStore
 
     st = VersionedStore(store_dir)
     out = []
