@@ -646,6 +646,9 @@ NOISE_COLUMNS = [
     "method",
     "is_upper_bound",
     "ci_level",
+    "tau_min_s",
+    "tau_max_s",
+    "fit_warning",
 ]
 
 
@@ -655,7 +658,8 @@ def fit_all(results: Mapping[str, AllanResult], **kw) -> dict[str, NoiseFit]:
 
 
 def noise_table(fits, **kw) -> pd.DataFrame:
-    """Tidy table (channel, parameter, value, ci_lo, ci_hi, unit, *_lab, method, is_upper_bound) of fits.
+    """Tidy table (channel, parameter, value, ci_lo, ci_hi, unit, *_lab, method, is_upper_bound, the fit's tau range
+    and its warnings, joined by " | ", on every row of the channel) of fits.
 
     ``fits``: mapping channel -> NoiseFit, or mapping channel -> AllanResult (fitted here with ``kw``).
     """
@@ -680,6 +684,9 @@ def noise_table(fits, **kw) -> pd.DataFrame:
                     "method": p.method,
                     "is_upper_bound": p.is_upper_bound,
                     "ci_level": p.ci_level,
+                    "tau_min_s": fit.tau_range_s[0],
+                    "tau_max_s": fit.tau_range_s[1],
+                    "fit_warning": " | ".join(fit.warnings),
                 }
             )
     return pd.DataFrame(rows, columns=NOISE_COLUMNS)

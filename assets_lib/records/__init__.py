@@ -52,7 +52,7 @@ from assets_lib.store.view import StoreView  # noqa: F401 - the one read view (r
 
 RECORD_SCHEMA_VERSION = "1.0"
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "raw_schemas" / "record.schema.json"
-COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit")
+COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit", "tablefree_fit")
 NOISE_SOURCES = ("allan_deviation",)
 PLOT_SOURCES = (*COEFFICIENT_SOURCES, *NOISE_SOURCES)
 COEFFICIENT_FIELDS = ("sensor", "axis", "coefficient", "value", "stderr", "unit", "value_lab", "stderr_lab", "unit_lab",
