@@ -213,3 +213,14 @@ def test_coefficient_table_rows(xsens_run):
     assert len(t) == 9 + 12 and t["observable"].all()
     k = t[(t.sensor == "gyro") & (t.coefficient == "scale_factor")].set_index("axis")["value"]
     np.testing.assert_allclose(k.to_numpy() * GYRO_LSB, IMUTK_GYRO_K, rtol=2e-3)
+
+
+def test_stage_check_names_the_failing_figure():
+    from assets_lib.stages.tablefree import fit_problem
+
+    ok = {"gravity_mps2": 9.81, "diagnostics": {"accel_norm_rms_mps2": 0.0014, "unobservable": []}}
+    assert fit_problem(ok) is None
+    bad = {"gravity_mps2": 9.81, "diagnostics": {"accel_norm_rms_mps2": 0.05, "unobservable": []}}
+    assert "static |f| - g RMS 0.05" in fit_problem(bad)
+    unobs = {"gravity_mps2": 9.81, "diagnostics": {"static_norm_rms_mps2": 0.001, "unobservable": ["k_z"]}}
+    assert "k_z" in fit_problem(unobs)
