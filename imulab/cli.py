@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
     "repeatability": ("imulab.commands.repeatability", "Turn-on bias and noise-term repeatability of static runs."),
+    "twin": ("imulab.commands.twin", "Build a device-model file (digital twin) from a device's calibration outputs."),
     "apply": ("imulab.commands.apply", "Calibrate IMU data with a calibration record or device calibration."),
     "records": ("imulab.commands.records", "List a device's records; pick the one valid at a date (staleness, drift)."),
     "export": ("imulab.commands.export", "Export a calibration for Kalibr/OpenVINS, imucal, or firmware (JSON, C header)."),

@@ -280,6 +280,9 @@ def _build(device_id: str, picks: dict[str, tuple[dict, list[dict], str | None]]
 def calibration_from_record(record: dict, store_version: str | None = None, name: str = "record") -> Calibration:
     """The calibration held by ONE record (its groups only; the others stay nominal and are listed missing)."""
     check_record(record, name)
+    if record["content"].get("status") == "invalid":
+        raise CalibrationError(f"{name}: the record of run {record['content']['run']['run_id']} is marked invalid, "
+                               "not a valid calibration: " + "; ".join(record["content"].get("status_reasons") or []))
     groups = _groups_in_record(record)
     picks = {g: (record, rows, store_version) for g, rows in groups.items() if _complete(g, rows)}
     if "gyro_bias_g" in picks:
@@ -308,8 +311,8 @@ def assemble(records: list[dict], at=None, store_version: str | None = None) -> 
     for r in records:
         check_record(r, r["content"]["run"]["run_id"])
     at_ts = to_utc(at) if at is not None else pd.Timestamp.now(tz="UTC")
-    valid = sorted((r for r in records if _start(r) <= at_ts), key=lambda r: (_start(r), r["content"]["run"]["run_id"]),
-                   reverse=True)
+    valid = sorted((r for r in records if _start(r) <= at_ts and r["content"].get("status") != "invalid"),
+                   key=lambda r: (_start(r), r["content"]["run"]["run_id"]), reverse=True)  # never an invalid record
     if not valid:
         first = min(_start(r) for r in records)
         raise CalibrationError(f"device {devices.pop()}: no record started at or before {at_ts.isoformat()} "

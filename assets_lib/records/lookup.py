@@ -3,7 +3,7 @@ or before the date, assemble the device calibration (``assets_lib.apply.model.as
 is older than a maximum age (imucal's ``find_closest_calibration_info_to_date`` warns past 30 days, our default)
 or when the fleet-drift stage has flagged the device since the record was made.
 
-Store layout read (``pipelines.storage``, read as files: assets_lib does not import pipelines):
+Store layout read (``assets_lib.store``, read as files):
 ``<store>/calibration_record/<device>/CURRENT`` names the version folder holding ``<run>.json`` records;
 ``<store>/fleet_drift/fleet/CURRENT`` names the version folder holding ``drift.parquet`` (one row per device and
 coefficient series: ``drift_flag``, ``shift_flag``, ``shift_run_id``, ``cusum_alarm_run_id``, ``last_run_id``) and
@@ -71,10 +71,10 @@ def records_table(records: list[dict]) -> pd.DataFrame:
         if c.get("noise"):
             groups.append("noise")
         rows.append({"run_id": c["run"]["run_id"], "test_kind": c["run"]["test_kind"],
-                     "start_time_utc": _start(r), "record_sha256": r["record_sha256"],
+                     "start_time_utc": _start(r), "record_sha256": r["record_sha256"], "status": c.get("status", ""),
                      "n_coefficients": len(c.get("coefficients", [])), "holds": ", ".join(groups) or "-"})
-    return pd.DataFrame(rows, columns=["run_id", "test_kind", "start_time_utc", "record_sha256", "n_coefficients",
-                                       "holds"])
+    return pd.DataFrame(rows, columns=["run_id", "test_kind", "start_time_utc", "record_sha256", "status",
+                                       "n_coefficients", "holds"])
 
 
 def drift_flags(store: str | Path, device: str) -> pd.DataFrame:
@@ -126,7 +126,7 @@ def lookup(store: str | Path, device: str, at=None, max_age_days: float = DEFAUL
     at_ts = to_utc(at) if at is not None else pd.Timestamp.now(tz="UTC")
     cal = assemble(records, at_ts, store_version=version)
     table = records_table(records)
-    valid = table[table["start_time_utc"] <= at_ts].iloc[-1]
+    valid = table[(table["start_time_utc"] <= at_ts) & (table["status"] != "invalid")].iloc[-1]
     warnings = []
     for r in cal.records:
         age = (at_ts - to_utc(r["start_time_utc"])).total_seconds() / 86400.0
@@ -134,6 +134,11 @@ def lookup(store: str | Path, device: str, at=None, max_age_days: float = DEFAUL
             used_for = sorted({t.group for t in cal.terms if t.record_sha256 == r["record_sha256"]}) or ["noise"]
             warnings.append(f"record {r['run_id']} ({', '.join(used_for)}) is {age:.1f} days old at "
                             f"{at_ts.date()} (maximum age {max_age_days:g} days)")
+    for r in records:
+        c = r["content"]
+        if c.get("status") == "invalid" and to_utc(_start(r)) <= at_ts:
+            warnings.append(f"record {c['run']['run_id']} is marked invalid and not used: "
+                            + "; ".join(c.get("status_reasons") or []))
     for g in cal.missing_groups:
         warnings.append(f"no record of {device} at or before {at_ts.date()} holds {g}: it stays uncalibrated")
     term_records = {t.record_sha256 for t in cal.terms}
