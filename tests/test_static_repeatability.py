@@ -73,3 +73,31 @@ def test_cli_repeatability_on_imported_runs(tmp_path):
 def test_cli_repeatability_needs_two_runs(tmp_path):
     r = CliRunner().invoke(main, ["repeatability", str(tmp_path)])
     assert r.exit_code != 0 and "at least two" in r.output
+
+
+@pytest.mark.slow
+def test_pipeline_repeatability_stage_on_static_runs(tmp_path, monkeypatch):
+    """imulab import (x4 power cycles) && imulab run: the repeatability stage writes static_repeatability."""
+    monkeypatch.delenv("DAGSTER_HOME", raising=False)
+    biases, runs = _runs(n_runs=4, minutes=3, seed=7)
+    prof = {"time": {"rate_hz": 100.0},
+            "channels": {**{f"gyro_{a}": {"column": f"g{a}", "unit": "rad/s"} for a in "xyz"},
+                         **{f"accel_{a}": {"column": f"a{a}", "unit": "m/s^2"} for a in "xyz"}}}
+    (tmp_path / "p.json").write_text(json.dumps(prof))
+    rng = np.random.default_rng(2)
+    for i, g in runs:
+        n = g.size
+        pd.DataFrame({"gx": g, "gy": 1e-3 * rng.standard_normal(n), "gz": 1e-3 * rng.standard_normal(n),
+                      "ax": 0.01 * rng.standard_normal(n), "ay": 0.01 * rng.standard_normal(n),
+                      "az": 9.81 + 0.01 * rng.standard_normal(n)}).to_csv(tmp_path / f"run{i}.csv", index=False)
+        r = CliRunner().invoke(main, ["import", "profile", str(tmp_path / f"run{i}.csv"), "--landing", str(tmp_path / "land"),
+                                      "--device-id", "D1", "--run-id", f"pc{i}", "--power-cycle-index", str(i),
+                                      "--start-time-utc", f"2026-01-0{i + 1}T08:00:00Z", "-o", f"profile={tmp_path / 'p.json'}"])
+        assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["run", "--archive", str(tmp_path / "land"), "--data-dir", str(tmp_path / "data")])
+    assert r.exit_code == 0, r.output
+    files = list((tmp_path / "data" / "store" / "repeatability" / "D1").glob("*/static_repeatability.parquet"))
+    assert len(files) == 1
+    t = pd.read_parquet(files[0]).set_index(["channel", "quantity"])
+    assert t.loc[("gyro_x_radps", "bias_repeatability"), "n_runs"] == 4
+    assert t.loc[("gyro_x_radps", "bias_repeatability"), "value"] == pytest.approx(np.std(biases, ddof=1), rel=0.1)

@@ -123,18 +123,25 @@ def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: f
     for ch, y in data.items():
         y = np.asarray(y, float)
         r = al.allan_deviation(y, rate_hz, "octave", channel=ch, unit=(units or {}).get(ch, ""))
-        fit = ni.fit_noise(r)
-        T = y.size / rate_hz
-        se_bias = float(np.sqrt(max(fit.model_avar(np.array([T]))[0], 0.0)))
-        n, b = fit.parameter("N"), fit.parameter("B")
-
-        def val(p):
-            return (np.nan, np.nan) if p.is_upper_bound else (p.value, (p.ci_hi - p.ci_lo) / 3.92)
-
-        rows.append(dict(run_id=run_id, power_cycle_index=power_cycle_index, channel=ch, duration_s=T,
-                         bias=float(y.mean()), bias_stderr=se_bias, N=val(n)[0], N_stderr=val(n)[1], B=val(b)[0],
-                         B_stderr=val(b)[1], unit=(units or {}).get(ch, ""), noise_warnings=" | ".join(fit.warnings)))
+        rows.append(static_terms_row(run_id, power_cycle_index, ch, float(y.mean()), y.size / rate_hz, ni.fit_noise(r),
+                                     (units or {}).get(ch, "")))
     return pd.DataFrame(rows, columns=STATIC_RUN_COLUMNS)
+
+
+def static_terms_row(run_id: str, power_cycle_index: int, channel: str, mean: float, duration_s: float, fit,
+                     unit: str = "") -> dict:
+    """One row of :data:`STATIC_RUN_COLUMNS` from a channel's record mean and its fitted noise model ``fit``
+    (a ``NoiseFit``): bias standard error sqrt(sigma_A^2(T)) at the record length T, N and B with standard errors
+    from their 95 % intervals / 3.92 (NaN when only bounded)."""
+    se_bias = float(np.sqrt(max(fit.model_avar(np.array([duration_s]))[0], 0.0)))
+    n, b = fit.parameter("N"), fit.parameter("B")
+
+    def val(p):
+        return (np.nan, np.nan) if p.is_upper_bound else (p.value, (p.ci_hi - p.ci_lo) / 3.92)
+
+    return dict(run_id=run_id, power_cycle_index=power_cycle_index, channel=channel, duration_s=duration_s,
+                bias=mean, bias_stderr=se_bias, N=val(n)[0], N_stderr=val(n)[1], B=val(b)[0], B_stderr=val(b)[1],
+                unit=unit, noise_warnings=" | ".join(fit.warnings))
 
 
 STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value", "ci_low", "ci_high", "relative",
