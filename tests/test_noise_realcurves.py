@@ -45,7 +45,7 @@ def test_galaxy_full_range_fit_warns_and_names_the_range(galaxy):
     """Forcing the whole curve (the pre-issue behaviour): the model cannot follow it and the fit says where."""
     fit = ni.fit_noise(galaxy["gyro_z_radps"], tau_min_s=None)
     assert not fit.matches_curve and fit.discrepancy > 0.1
-    assert any("leaves the curve's 99 % intervals for tau" in w for w in fit.warnings)
+    assert any("leaves the curve's 99 % (family-wise) intervals for tau" in w for w in fit.warnings)
 
 
 def test_slope_reads_ignore_low_dof_points(galaxy):
@@ -89,7 +89,7 @@ def test_cli_allan_tau_options_and_warning(shared_data, tmp_path):
                                     "--columns", "gyro_z_radps", "--units", "rad/s", "--tau-min", "0.1",
                                     "--json", str(out)])
     assert res.exit_code == 0, res.output
-    assert "WARNING gyro_z_radps: the noise model leaves the curve's 99 % intervals for tau" in res.output
+    assert "WARNING gyro_z_radps: the noise model leaves the curve's 99 % (family-wise) intervals for tau" in res.output
     import json
 
     doc = json.loads(out.read_text())

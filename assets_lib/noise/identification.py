@@ -29,8 +29,8 @@ is pulled far off everywhere else (chi2/dof ~ 2000 on a real phone record). Thre
   chi2 / dof = 1; the term intervals widen accordingly. ``delta`` is reported (``NoiseFit.discrepancy``).
 * **Tau range.** ``tau_min_s`` / ``tau_max_s`` restrict the fit (default: every tau with at least
   ``min_terms`` terms and m <= N/4). The range used is reported (``NoiseFit.tau_range_s``).
-* **Check against the curve.** The fitted model is compared with the curve's chi-square intervals at
-  ``check_ci`` (99 %) over the fit range; every contiguous tau range where it leaves them is named in
+* **Check against the curve.** The fitted model is compared with the curve's chi-square intervals at a
+  family-wise ``check_ci`` (99 % over all fitted taus, Bonferroni) over the fit range; every contiguous tau range where it leaves them is named in
   ``NoiseFit.warnings`` (with the model/curve ratio), so the CLI, record and certificate can say so loudly.
 
 Slope reads use only points with at least ``min_edf`` degrees of freedom (the last points of a curve have 1-3,
@@ -348,7 +348,9 @@ def _outside_ranges(res: AllanResult, sel: np.ndarray, model_avar, check_ci: flo
     from assets_lib.noise.intervals import chi2_interval
 
     tau, dev, edf = res.tau_s[sel], res.adev[sel], res.edf[sel]
-    lo, hi = chi2_interval(dev, edf, check_ci)
+    # family-wise over the fitted taus (Bonferroni): a dense grid of 100 taus would otherwise see a point outside
+    # its own 99 % interval by chance in most records
+    lo, hi = chi2_interval(dev, edf, 1.0 - (1.0 - check_ci) / max(len(tau), 1))
     mdev = np.sqrt(np.maximum(model_avar(tau), 0.0))
     out = (mdev < lo) | (mdev > hi)
     ranges = []
@@ -536,7 +538,7 @@ def fit_noise(
     outside = _outside_ranges(res, sel, proto.model_avar, check_ci)
     warns = []
     for lo_t, hi_t, rmin, rmax in outside:
-        warns.append(f"{res.channel or 'channel'}: the noise model leaves the curve's {100 * check_ci:g} % intervals "
+        warns.append(f"{res.channel or 'channel'}: the noise model leaves the curve's {100 * check_ci:g} % (family-wise) intervals "
                      f"for tau {lo_t:.4g}-{hi_t:.4g} s (model/curve {rmin:.3g}-{rmax:.3g})")
     if delta > 0:
         warns.append(f"{res.channel or 'channel'}: the curve departs from the IEEE 952 model by ~{100 * delta:.3g} % "
