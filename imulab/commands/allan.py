@@ -252,7 +252,7 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
                 y = pd.to_numeric(df[c], errors="coerce").to_numpy()
                 r = al.allan_deviation(y, rate_hz, taus_v, data_type=data_type, ci_level=ci_level, backend=backend,
                                        channel=c, unit=info[c][1])
-                results[c] = al._scaled(r, info[c][0]) if info[c][0] != 1.0 else r
+                results[c] = al.scaled_result(r, info[c][0]) if info[c][0] != 1.0 else r
     except ValueError as e:
         raise click.ClickException(str(e)) from None
 
@@ -296,7 +296,7 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
             if c in fits:
                 f = fits[c]
                 entry["noise"] = [
-                    _jsonable({k: getattr(p, k) for k in p.__dataclass_fields__})
+                    _jsonable(p.as_dict())
                     for p in list(f.parameters) + list(f.slope_parameters)
                 ]
                 entry["fit"] = {"terms": list(f.terms), "theta": _jsonable(f.theta),
