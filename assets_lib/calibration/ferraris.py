@@ -1,6 +1,6 @@
 """Ferraris calibration (six static positions + three rotations), in imucal's convention, with uncertainties.
 
-Ferraris, Grimaldi & Parvis 1995 (docs/references.md), as implemented by imucal (Kuederle et al., JOSS 2022):
+[FERRARIS1995], as implemented by imucal (Kuederle et al., JOSS 2022):
 
 * static means U_p (axis j up, column j) and U_a (axis j down); bias b_a = diag(U_p + U_a) / 2 (eq. 19-20);
   K_a^2 = diag(U_d U_d^T) / (4 g^2) with U_d = U_p - U_a (eq. 23); R_a = K_a^-1 U_d / (2 g) (eq. 22);
@@ -104,7 +104,7 @@ def _solve(acc_means: np.ndarray, gyr_means: np.ndarray, gyr_b: np.ndarray, rot_
 
 def ferraris_fit(sections: dict, sample_rate_hz: float, *, gravity: float = 9.81, expected_angle_deg: float = -360.0,
                  from_acc_unit: str = "a.u.", from_gyr_unit: str = "a.u.") -> FerrarisFit:
-    """Ferraris et al. 1995 closed form (module docstring) from ``sections[name] = (acc (n, 3), gyr (n, 3))`` for the
+    """[FERRARIS1995] closed form (module docstring) from ``sections[name] = (acc (n, 3), gyr (n, 3))`` for the
     nine imucal sections; output in m/s^2 (gravity in m/s^2) and deg/s (expected angle in deg)."""
     missing = [s for s in STATIC_SECTIONS + ROTATION_SECTIONS if s not in sections]
     if missing:

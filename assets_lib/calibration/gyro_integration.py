@@ -1,5 +1,5 @@
 """Table-free gyro calibration: integrate the gyro between static poses and match the attitude change that the
-calibrated accelerometer sees (Tedaldi, Pretto & Menegatti 2014, Sec. III-C / eq. 14-17; docs/references.md).
+calibrated accelerometer sees ([TEDALDI2014] Sec. III-C / eq. 14-17).
 
 Model (imu_tk's): w = T K (u - b), T unit-diagonal with six free off-diagonal terms, K = diag(k), b the bias
 (input units; by default the mean of the initial static interval, imu_tk's choice, and held fixed). Between
@@ -105,7 +105,7 @@ class _Segments:
 
 def fit_gyro_integration(t_s: np.ndarray, gyro_raw: np.ndarray, starts, ends, gravity_dirs: np.ndarray, bias: np.ndarray,
                          *, scale_start: np.ndarray, fit_bias: bool = False, input_unit: str = "counts") -> GyroIntegrationFit:
-    """Tedaldi et al. 2014 eq. 14-17 (module docstring). ``gravity_dirs``: unit specific-force directions of the
+    """[TEDALDI2014] eq. 14-17 (module docstring). ``gravity_dirs``: unit specific-force directions of the
     poses from the calibrated accelerometer; ``bias``: initial (or fixed) gyro bias; ``scale_start``: initial
     diagonal scale (rad/s per input unit)."""
     u = np.asarray(gyro_raw, float)

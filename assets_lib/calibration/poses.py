@@ -1,6 +1,6 @@
 """Static poses of a hand-moved (table-free) session: where the IMU was held still, without a plan of timings.
 
-The statistic is imu_tk's (Tedaldi, Pretto & Menegatti 2014, Sec. IV-A; docs/references.md): the norm of the
+The statistic is imu_tk's ([TEDALDI2014] Sec. IV-A): the norm of the
 per-axis variances of the accelerometer over a centred sliding window, here also (optionally) of the gyro. A
 sample is static when the statistic is below ``k`` times its static level. The static level is the variance
 over a declared initial static interval when there is one (imu_tk), otherwise a low quantile of the windowed
@@ -79,7 +79,7 @@ def detect_static_poses(
     gyro: np.ndarray | None = None,
     k_gyro: float | None = None,
 ) -> StaticPoses:
-    """Static intervals: windowed accelerometer variance norm < k x static level (Tedaldi et al. 2014, Sec. IV-A).
+    """Static intervals: windowed accelerometer variance norm < k x static level ([TEDALDI2014] Sec. IV-A).
 
     ``reference`` (a sample slice of a known static interval, e.g. imu_tk's initial 50 s) sets the static level
     to the variance norm of that interval; otherwise the ``level_quantile`` quantile of the windowed statistic

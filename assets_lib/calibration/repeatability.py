@@ -112,7 +112,7 @@ def repeatability_table(coefficients: pd.DataFrame, *, confidence: float = 0.95)
 
 
 # ------------------------------------------------------------------------------------------------------------
-# Static power-cycled runs: turn-on bias and noise-term repeatability (seed 000, the turn-on to turn-on test)
+# Static power-cycled runs: turn-on bias and noise-term repeatability ([SEED000], the turn-on to turn-on test)
 # ------------------------------------------------------------------------------------------------------------
 STATIC_RUN_COLUMNS = ["run_id", "power_cycle_index", "channel", "duration_s", "bias", "bias_stderr", "N", "N_stderr",
                       "B", "B_stderr", "unit", "noise_warnings"]
@@ -121,7 +121,7 @@ STATIC_RUN_COLUMNS = ["run_id", "power_cycle_index", "channel", "duration_s", "b
 def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: float, units: dict | None = None
                      ) -> pd.DataFrame:
     """One static run: per channel the turn-on bias (record mean) with its standard error sqrt(sigma_A^2(T)) read
-    from the fitted noise model at the record length T (IEEE Std 952-1997 C.1: the scatter of a T-long mean;
+    from the fitted noise model at the record length T ([IEEE952] C.1: the scatter of a T-long mean;
     white-noise sigma/sqrt(n) would be too small under bias instability), and the N and B terms of the fit
     (:func:`assets_lib.noise.identification.fit_noise`, standard errors from the 95 % intervals / 3.92)."""
     from assets_lib.noise import allan as al

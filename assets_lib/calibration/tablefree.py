@@ -1,6 +1,6 @@
-"""Table-free accelerometer calibration from hand-placed static poses (Tedaldi, Pretto & Menegatti 2014).
+"""Table-free accelerometer calibration from hand-placed static poses ([TEDALDI2014]).
 
-Model (imu_tk's, docs/references.md "Tedaldi 2014", eq. 8-10): a = T K (u - b) with u the raw reading, b the
+Model (imu_tk's, [TEDALDI2014] eq. 8-10): a = T K (u - b) with u the raw reading, b the
 bias (input units), K = diag(k) the scale (output per input unit) and T unit-upper-triangular,
 T = [[1, t01, t02], [0, 1, t12], [0, 0, 1]] (the accelerometer frame defines the body frame, so three of the six
 misalignment angles are fixed). At every static pose the specific force has the magnitude of local gravity, so
@@ -90,7 +90,7 @@ def observability(jac: np.ndarray, names, typical: np.ndarray, rcond: float = 1e
 
 def fit_accel_poses(pose_means: np.ndarray, gravity_mps2: float, *, input_unit: str = "m/s^2",
                     start: np.ndarray | None = None) -> AccelPoseFit:
-    """Tedaldi et al. 2014 eq. 10 (module docstring): 9-parameter accelerometer fit from static pose means."""
+    """[TEDALDI2014] eq. 10 (module docstring): 9-parameter accelerometer fit from static pose means."""
     m = np.asarray(pose_means, float)
     n = m.shape[0]
     g = float(gravity_mps2)

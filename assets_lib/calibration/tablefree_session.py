@@ -5,7 +5,7 @@ fit, and return one coefficient table with uncertainties and observability.
   the Ferraris closed form (:mod:`assets_lib.calibration.ferraris`) on the annotated sections.
 * Otherwise (``free`` steps, optionally a leading ``pose`` = the initial static interval): static poses are
   detected (:mod:`assets_lib.calibration.poses`; level from the initial interval when declared), the
-  accelerometer is fitted to the pose magnitudes (Tedaldi et al. 2014, :mod:`assets_lib.calibration.tablefree`)
+  accelerometer is fitted to the pose magnitudes ([TEDALDI2014], :mod:`assets_lib.calibration.tablefree`)
   and the gyro by integration between poses (:mod:`assets_lib.calibration.gyro_integration`) with its bias the
   mean of the initial static interval (or of all poses when none is declared; earth rate then enters the bias).
 
@@ -66,7 +66,7 @@ def _slice(t, s) -> slice:
 
 def _mean_stderr(x: np.ndarray, rate_hz: float) -> np.ndarray:
     """Standard error of a window mean per column: sqrt(sigma_A^2(T)) of the fitted IEEE 952 model at the window
-    length T (IEEE Std 952-1997 C.1; under bias instability sigma / sqrt(n) is too small)."""
+    length T ([IEEE952] C.1; under bias instability sigma / sqrt(n) is too small)."""
     from assets_lib.noise.allan import allan_deviation
     from assets_lib.noise.identification import fit_noise
 
@@ -136,7 +136,13 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
     """COEFFICIENT TABLE rows (``fit_report.COEFFICIENT_COLUMNS``) of a table-free calibration: per sensor and
     axis ``scale_factor`` (relative to the nominal lsb), ``bias`` (SI), ``misalignment_<i><j>`` (rad, small
     angle), and for Ferraris ``g_sensitivity_<j>`` of the gyro."""
-    from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row
+    from assets_lib.calibration.fit_report import coefficient_frame
+    from assets_lib.calibration.fit_report import coefficient_row as _row
+    from raw_schemas.units import lab_unit
+
+    def coefficient_row(*, sensor, coefficient, value, stderr, observable, **kw):
+        est = Coefficient(float(value), float(stderr), lab_unit(sensor, coefficient).si, bool(observable))
+        return _row(sensor=sensor, coefficient=coefficient, estimate=est, **kw)
 
     rows = []
     n_p = result.poses.count if result.poses is not None else 6

@@ -25,7 +25,7 @@ is pulled far off everywhere else (chi2/dof ~ 2000 on a real phone record). Thre
 
 * **Model discrepancy in the weights.** When the GLS chi2 exceeds its 99.9 % chi-square quantile, a relative
   discrepancy variance delta^2 sigma^4_model(tau) is added to every point's variance (a fractional model error
-  common to all taus, the "additive model error" of e.g. Kennedy & O'Hagan 2001), with delta solved so that
+  common to all taus, the additive model-discrepancy term of Kennedy & O'Hagan 2001), with delta solved so that
   chi2 / dof = 1; the term intervals widen accordingly. ``delta`` is reported (``NoiseFit.discrepancy``).
 * **Tau range.** ``tau_min_s`` / ``tau_max_s`` restrict the fit (default: every tau with at least
   ``min_terms`` terms and m <= N/4). The range used is reported (``NoiseFit.tau_range_s``).
