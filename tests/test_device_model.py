@@ -25,7 +25,7 @@ from assets_lib.sim.device_model import effects_of, model_from_truth, truth_for_
 from assets_lib.sim.effects import EFFECTS, sensor_chain
 from assets_lib.sim.simulator import example_device, simulate_run, write_run
 from imulab.cli import main
-from pipelines.storage import VersionedStore
+from assets_lib.store import VersionedStore
 from raw_schemas.device_model import device_model_json_schema, load_device_model
 from raw_schemas.errors import RawDataError
 from raw_schemas.readers import discover_runs, ingest_run

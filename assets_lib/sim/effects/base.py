@@ -103,7 +103,7 @@ def sensor_chain(extra=(), base=None) -> tuple:
     """The simulator's effect chain with ``extra`` families added where they belong: clock/table/input effects
     (run before the kinematics, listed first), sensor effects after the error model, noise effects after the
     Allan noise, saturation last."""
-    from assets_lib.sim.simulator import DEFAULT_EFFECTS, AllanNoise, ErrorModel
+    from assets_lib.sim.effects.core import DEFAULT_EFFECTS, AllanNoise, ErrorModel
 
     base = tuple(DEFAULT_EFFECTS if base is None else base)
     st = split_stages(extra)
