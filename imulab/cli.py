@@ -17,6 +17,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "verify": ("imulab.commands.verify", "Recompute a calibration record from the raw archive and check it."),
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
+    "twin": ("imulab.commands.twin", "Build a device-model file (digital twin) from a device's calibration outputs."),
+    "apply": ("imulab.commands.apply", "Calibrate IMU data with a calibration record or device calibration."),
+    "records": ("imulab.commands.records", "List a device's records; pick the one valid at a date (staleness, drift)."),
+    "export": ("imulab.commands.export", "Export a calibration for Kalibr/OpenVINS, imucal, or firmware (JSON, C header)."),
 }
 
 

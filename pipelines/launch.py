@@ -5,9 +5,7 @@ partitions in one run, then the fleet stage. Reused versions cost only a lookup,
 cheap; ``pipelines.reprocess`` narrows the ranges to stale partitions.
 """
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import dagster as dg
 
@@ -23,6 +21,7 @@ from pipelines.jobs import (
     contiguous_blocks,
     range_tags,
 )
+from pipelines.instance import open_instance, process_tags  # noqa: F401 - open_instance re-exported
 from pipelines.partitions import (
     captures,
     devices,
@@ -32,19 +31,6 @@ from pipelines.partitions import (
 from pipelines.resources import LabArchive
 
 QUIET = {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
-
-
-def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterInstance:
-    """A persistent instance in ``dagster_home`` (or $DAGSTER_HOME), so ``dagster dev`` shows the same runs."""
-    home = dagster_home or os.environ.get("DAGSTER_HOME")
-    if home is None:
-        raise ValueError("no Dagster home given and DAGSTER_HOME is not set")
-    home = Path(home).resolve()
-    home.mkdir(parents=True, exist_ok=True)
-    cfg = home / "dagster.yaml"
-    if not cfg.exists():
-        cfg.write_text("telemetry:\n  enabled: false\n")
-    return dg.DagsterInstance.from_config(str(home))
 
 
 def register_landed_runs(instance: dg.DagsterInstance, archive: LabArchive) -> list[str]:
@@ -73,7 +59,8 @@ def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, t
     """One in-process run of ``job_name`` (optionally a subset of its assets) on ``instance``."""
     summary = summary if summary is not None else LaunchSummary()
     res = defs.resolve_job_def(job_name).execute_in_process(
-        instance=instance, run_config=QUIET if quiet else None, tags=tags, asset_selection=asset_selection,
+        instance=instance, run_config=QUIET if quiet else None, tags={**(tags or {}), **process_tags()},
+        asset_selection=asset_selection,
         raise_on_error=False)
     summary.runs.append((job_name, res.run_id, res.success))
     steps = {e.step_key for e in res.all_events if e.is_step_success and e.step_key}

@@ -1,6 +1,6 @@
-"""Outlier rejection on plateaus by polynomial residuals (seed 001), with a robust, iterated threshold.
+"""Outlier rejection on plateaus by polynomial residuals ([SEED001]), with a robust, iterated threshold.
 
-Seed 001 fits, per plateau, a degree-7 polynomial against the sample index (``polyfit(x1, x2, 7)``), keeps the
+[SEED001] fits, per plateau, a degree-7 polynomial against the sample index (``polyfit(x1, x2, 7)``), keeps the
 samples whose residual is inside a fixed band (``abs(x3 - x2) < 0.005`` V) and averages them. Here the band is
 not fixed in sensor units but ``k`` robust standard deviations of the residual (1.4826 x MAD), the polynomial
 is refitted on the kept samples, and both steps repeat until the kept set no longer changes (a borderline sample
@@ -8,7 +8,7 @@ that flips in and out on alternate passes is rejected).
 
 Defaults and why:
 
-* ``degree = 7`` (seed 001). The polynomial only has to absorb the slow, low-frequency part of a plateau
+* ``degree = 7`` ([SEED001]). The polynomial only has to absorb the slow, low-frequency part of a plateau
   (warm-up, bias wander) so that the MAD measures the sample-to-sample noise. On the [-1, 1]-mapped time axis
   (Legendre basis) degree 7 is well conditioned, and it removes 8 degrees of freedom from windows of thousands
   of samples (residual variance shrinks by 8/n, negligible). On short windows the degree is capped so every
@@ -102,7 +102,7 @@ def reject_outliers_window(
     config: OutlierConfig = OutlierConfig(),
     resolution=None,
 ) -> WindowOutliers:
-    """Seed 001 (polyfit residual band), robust form: keep |y - p(t)| < k * 1.4826 MAD, refit, iterate to a fixed point.
+    """[SEED001] (polyfit residual band), robust form: keep |y - p(t)| < k * 1.4826 MAD, refit, iterate to a fixed point.
 
     ``values`` is (n,) or (n, c); a sample is kept only if every channel keeps it. ``resolution`` (scalar or one per
     channel, same units as ``values``) floors the robust sigma for quantized data; None estimates it per channel.
@@ -184,7 +184,7 @@ def reject_outliers(
     config: OutlierConfig = OutlierConfig(),
     resolution=None,
 ) -> OutlierResult:
-    """Seed 001 per plateau: :func:`reject_outliers_window` on every plateau id >= 0 (samples with id -1 are not kept).
+    """[SEED001] per plateau: :func:`reject_outliers_window` on every plateau id >= 0 (samples with id -1 are not kept).
 
     Returns the global keep mask and a summary with one row per plateau: ``plateau, n_samples, n_rejected,
     rejected_fraction, degree_used, iterations, flagged, flag_reason``. ``resolution`` as in the window function;

@@ -1,22 +1,22 @@
-"""IEEE 952 noise terms from an Allan variance curve: generalised least squares with intervals, and slope reads.
+"""[IEEE952] noise terms from an Allan variance curve: generalised least squares with intervals, and slope reads.
 
-IEEE Std 952-1997 Annex C (C.23): sigma^2(tau) = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2,
-optionally + first-order Markov (C.25) and sinusoid (C.27) terms (seed 002 sec. 2.2 (1)-(7)).
+[IEEE952] Annex C (C.23): sigma^2(tau) = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2,
+optionally + first-order Markov (C.25) and sinusoid (C.27) terms ([SEED002] sec. 2.2 (1)-(7)).
 
-Estimator (allan.md section 6.3): the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The AVAR
+Estimator: the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The AVAR
 points are heteroscedastic and strongly correlated across tau, so they are fitted by non-negative generalised
 least squares with their covariance V evaluated at the current model (iterated):
-- variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from Greenhall & Riley 2003 at the model's local
+- variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from [GREENHALL2003] at the model's local
   power-law exponent (interpolated between integer alphas);
 - correlations from the large-n Gaussian approximation
   Cov(s2_j, s2_k) ~ min(n_j, n_k) / (2 n_j n_k tau0) * integral S(f)^2 |G_j(f)|^2 |G_k(f)|^2 df,
   |G_tau(f)|^2 = 4 sin^4(pi f tau)/(pi f tau)^2, S the model's two-sided rate PSD (the generalisation of
-  Vaccaro & Zaki 2012 to the IEEE 952 mixture).
+  [VACCARO2012] to the [IEEE952] mixture).
 Each theta_k gets a Wald covariance (X' V^-1 X)^-1 and a Satterthwaite chi-square interval (theta is a variance);
 a term whose Wald interval reaches zero is reported as a one-sided upper bound, not as a number.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
-when terms overlap (Guerrier, Molinari & Stebler 2016) and benchmarks/mc_noise_id.py measures by how much.
+when terms overlap ([GUERRIER2016]) and benchmarks/mc_noise_id.py measures by how much.
 """
 
 from __future__ import annotations
@@ -30,45 +30,15 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
+from assets_lib.coefficient import Coefficient
 from assets_lib.noise.allan import AllanResult
 from assets_lib.noise.intervals import edf_greenhall
+from raw_schemas.units import lab_unit
 
 LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
 TERMS = ("Q", "N", "B", "K", "R")
 #: local log-log slope of sigma^2 for each term (alpha = -slope - 1 for the EDF)
 _TERM_ALPHA = {"Q": 2.0, "N": 0.0, "B": -1.0, "K": -2.0, "R": -2.0, "M": 0.0, "S": 0.0}
-
-RAD2DEG = 180.0 / math.pi
-G0 = 9.80665
-
-#: SI unit and (lab unit, factor SI -> lab) per sensor and parameter
-UNITS = {
-    "gyro": {
-        "Q": ("rad", "arcsec", RAD2DEG * 3600.0),
-        "N": ("rad/s/sqrt(Hz)", "deg/sqrt(h)", RAD2DEG * 60.0),
-        "B": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "K": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "R": ("rad/s^2", "deg/h/h", RAD2DEG * 3600.0**2),
-        "markov_q": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-    "accel": {
-        "Q": ("m/s", "m/s", 1.0),
-        "N": ("m/s^2/sqrt(Hz)", "m/s/sqrt(h)", 60.0),
-        "B": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "K": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "R": ("m/s^3", "m/s/h^2", 3600.0**2),
-        "markov_q": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-}
-UNITS["si"] = {k: (v[0], v[0], 1.0) for k, v in UNITS["gyro"].items()}
-UNITS["si"].update({k: ("", "", 1.0) for k in ("Q", "N", "B", "K", "R")})
-
 
 def sensor_of(channel: str = "", unit: str = "") -> str:
     """'gyro' | 'accel' | 'si' from a channel name (gyro_*, accel_*) or an SI unit string."""
@@ -88,7 +58,7 @@ def sensor_of(channel: str = "", unit: str = "") -> str:
 # model basis
 # --------------------------------------------------------------------------------------------------------------
 def basis(tau_s: np.ndarray, terms: Sequence[str] = TERMS) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.23: columns g_k(tau) with sigma^2 = sum_k theta_k g_k, theta = (Q^2, N^2, ...)."""
+    """[IEEE952] eq. C.23: columns g_k(tau) with sigma^2 = sum_k theta_k g_k, theta = (Q^2, N^2, ...)."""
     tau = np.asarray(tau_s, dtype=float)
     cols = {
         "Q": 3.0 / tau**2,
@@ -101,14 +71,14 @@ def basis(tau_s: np.ndarray, terms: Sequence[str] = TERMS) -> np.ndarray:
 
 
 def markov_avar_unit(tau_s: np.ndarray, tc_s: float) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.25 (seed 002 (6)): AVAR of a first-order Markov rate with (q_c T_c)^2 = 1."""
+    """[IEEE952] eq. C.25 ([SEED002] (6)): AVAR of a first-order Markov rate with (q_c T_c)^2 = 1."""
     tau = np.asarray(tau_s, dtype=float)
     r = tau / tc_s
     return (1.0 / tau) * (1.0 - (1.0 / (2.0 * r)) * (3.0 - 4.0 * np.exp(-r) + np.exp(-2.0 * r)))
 
 
 def sinusoid_avar_unit(tau_s: np.ndarray, f0_hz: float) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.27 (seed 002 (7)): AVAR of a sinusoidal rate of unit amplitude at f0."""
+    """[IEEE952] eq. C.27 ([SEED002] (7)): AVAR of a sinusoidal rate of unit amplitude at f0."""
     x = math.pi * f0_hz * np.asarray(tau_s, dtype=float)
     return (np.sin(x) ** 2 / x) ** 2
 
@@ -117,7 +87,7 @@ def sinusoid_avar_unit(tau_s: np.ndarray, f0_hz: float) -> np.ndarray:
 # covariance of AVAR estimates at a model
 # --------------------------------------------------------------------------------------------------------------
 def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s: float | None) -> np.ndarray:
-    """IEEE Std 952-1997 Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
+    """[IEEE952] Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
     w = 2.0 * np.pi * f
     S = np.zeros_like(f)
     S += theta.get("Q", 0.0) * w**2 * tau0
@@ -133,7 +103,7 @@ def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s:
 def avar_correlation(
     tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
 ) -> np.ndarray:
-    """Large-n Gaussian correlation of overlapping AVAR estimates at a model (Vaccaro & Zaki 2012, generalised)."""
+    """Large-n Gaussian correlation of overlapping AVAR estimates at a model ([VACCARO2012], generalised)."""
     tau = np.asarray(tau_s, dtype=float)
     tau0 = 1.0 / rate_hz
     f_lo = 1e-3 / tau.max()
@@ -184,25 +154,46 @@ def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarr
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NoiseParameter:
-    """One noise coefficient: SI value with interval, the same in lab units, method and upper-bound flag."""
+    """One noise term: its SI :class:`Coefficient` (interval at ``ci_level``), method and upper-bound flag.
+
+    ``estimate.value`` is NaN when the term is only bounded (``is_upper_bound``; ``ci_hi`` is the bound);
+    ``estimate.stderr`` is the delta-method standard error of a fitted term (NaN for slope reads and bounds).
+    Lab units come from the one lab-unit table, ``raw_schemas.units.lab_unit``.
+    """
 
     name: str
-    value: float  #: SI; NaN when the term is only bounded (is_upper_bound)
-    ci_lo: float
-    ci_hi: float  #: the upper bound when is_upper_bound
-    unit: str
-    value_lab: float
-    ci_lo_lab: float
-    ci_hi_lab: float
-    unit_lab: str
+    estimate: Coefficient
+    sensor: str  #: 'gyro' | 'accel' | 'si' (selects the lab units)
     method: str  #: 'fit' | 'slope'
     is_upper_bound: bool
-    ci_level: float = 0.95
+
+    value = property(lambda self: self.estimate.value)
+    ci_lo = property(lambda self: self.estimate.ci_low)
+    ci_hi = property(lambda self: self.estimate.ci_high)
+    unit = property(lambda self: self.estimate.unit)
+    ci_level = property(lambda self: self.estimate.ci_level)
+
+    @property
+    def lab(self) -> Coefficient:
+        return self.estimate.to_lab(lab_unit(self.sensor, self.name))
+
+    value_lab = property(lambda self: self.lab.value)
+    ci_lo_lab = property(lambda self: self.lab.ci_low)
+    ci_hi_lab = property(lambda self: self.lab.ci_high)
+    unit_lab = property(lambda self: self.lab.unit)
+
+    def as_dict(self) -> dict:
+        """Flat record (the NOISE TABLE columns but the channel, plus the standard error)."""
+        lab = self.lab
+        return {"name": self.name, "value": self.value, "stderr": self.estimate.stderr, "ci_lo": self.ci_lo,
+                "ci_hi": self.ci_hi, "unit": self.unit, "value_lab": lab.value, "ci_lo_lab": lab.ci_low,
+                "ci_hi_lab": lab.ci_high, "unit_lab": lab.unit, "method": self.method,
+                "is_upper_bound": self.is_upper_bound, "ci_level": self.ci_level}
 
 
 @dataclass(frozen=True)
 class NoiseFit:
-    """IEEE 952 fit of one channel: parameters, theta (variances) and their covariance, the model curve."""
+    """[IEEE952] fit of one channel: parameters, theta (variances) and their covariance, the model curve."""
 
     channel: str
     sensor: str
@@ -220,7 +211,7 @@ class NoiseFit:
     iterations: int = 0
 
     def term_avar(self, tau_s: np.ndarray) -> dict[str, np.ndarray]:
-        """IEEE Std 952-1997 eq. C.23: each term's contribution to sigma^2(tau)."""
+        """[IEEE952] eq. C.23: each term's contribution to sigma^2(tau)."""
         tau = np.asarray(tau_s, dtype=float)
         out = {}
         for k, t in enumerate(self.terms):
@@ -243,29 +234,17 @@ class NoiseFit:
         raise KeyError(name)
 
 
-def _param(name, value, lo, hi, sensor, method, upper, ci_level) -> NoiseParameter:
-    unit, unit_lab, f = UNITS[sensor][name]
-    return NoiseParameter(
-        name=name,
-        value=float(value),
-        ci_lo=float(lo),
-        ci_hi=float(hi),
-        unit=unit,
-        value_lab=float(value) * f,
-        ci_lo_lab=float(lo) * f,
-        ci_hi_lab=float(hi) * f,
-        unit_lab=unit_lab,
-        method=method,
-        is_upper_bound=bool(upper),
-        ci_level=float(ci_level),
-    )
+def _param(name, value, lo, hi, sensor, method, upper, ci_level, stderr=math.nan) -> NoiseParameter:
+    est = Coefficient(float(value), float(stderr), lab_unit(sensor, name).si, not upper, float(lo), float(hi),
+                      float(ci_level))
+    return NoiseParameter(name=name, estimate=est, sensor=sensor, method=method, is_upper_bound=bool(upper))
 
 
 # --------------------------------------------------------------------------------------------------------------
 # the fit
 # --------------------------------------------------------------------------------------------------------------
 def _nn_gls(X: np.ndarray, a: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, float]:
-    """min (a - X t)' V^-1 (a - X t) subject to t >= 0 (Lawson-Hanson NNLS on the whitened system)."""
+    """min (a - X t)' V^-1 (a - X t) subject to t >= 0 ([LAWSON1974] NNLS on the whitened system)."""
     L = np.linalg.cholesky(V)
     Xw = np.linalg.solve(L, X)
     aw = np.linalg.solve(L, a)
@@ -300,7 +279,7 @@ def fit_noise(
     min_terms: int = 4,
     iterations: int = 4,
 ) -> NoiseFit:
-    """IEEE Std 952-1997 Annex C fit by iterated non-negative GLS; intervals on every term (see module doc)."""
+    """[IEEE952] Annex C fit by iterated non-negative GLS; intervals on every term (see module doc)."""
     if res.kind != "oadev":
         raise ValueError("fit_noise expects an overlapping Allan deviation (kind='oadev')")
     sensor = sensor or sensor_of(res.channel, res.unit)
@@ -340,7 +319,7 @@ def fit_noise(
         d = np.sqrt(2.0 * model**2 / edf)
         return _regularise(R * np.outer(d, d))
 
-    # start: diagonal weights from the measured points (NIST SP 1065 EDF of the identified noise)
+    # start: diagonal weights from the measured points ([NIST1065] EDF of the identified noise)
     V = np.diag(2.0 * a**2 / np.where(np.isfinite(res.edf[sel]) & (res.edf[sel] > 0), res.edf[sel], 1.0))
     grid_tc = np.geomspace(tau.min() * 2, tau.max() / 2, 24) if markov else [None]
     grid_f0 = np.geomspace(1.0 / tau.max(), 0.5 / tau.min(), 32) if sinusoid else [None]
@@ -383,6 +362,8 @@ def fit_noise(
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
+            # delta method: d sqrt(theta) = d theta / (2 sqrt(theta)) (Markov: also / T_c)
+            se = _theta_to_param(t, th, tc) * sd / (2.0 * th)
             params.append(
                 _param(
                     name,
@@ -393,6 +374,7 @@ def fit_noise(
                     "fit",
                     False,
                     ci_level,
+                    se,
                 )
             )
     if markov:
@@ -429,7 +411,7 @@ def _theta_to_param(t: str, th: float, tc: float | None) -> float:
 # classic slope reads
 # --------------------------------------------------------------------------------------------------------------
 def slope_reads(res: AllanResult, *, sensor: str | None = None, ci_level: float = 0.95, tol: float = 0.25) -> list:
-    """IEEE Std 952-1997 C.3 / seed 002 sec. 2.2: single-line reads of Q, N, B, K, R on the log-log ADEV curve.
+    """[IEEE952] C.3 / [SEED002] sec. 2.2 / [ELSHEIMY2008]: single-line reads of Q, N, B, K, R on the log-log ADEV curve.
 
     N: the -1/2 line through the point whose local slope is closest to -1/2, read at tau = 1 s; K: the +1/2
     line read at tau = 3 s; Q: -1 line at tau = sqrt(3) s; R: +1 line at tau = sqrt(2) s; B: the curve minimum

@@ -17,12 +17,12 @@ from assets_lib.calibration.multiposition import (
 )
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
+from assets_lib.records.validity import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
 from assets_lib.stages.spec import Gate, StageOutput, stage
 from raw_schemas.manifest import Manifest
 
 CALIBRATION_KINDS = ("rate", "multiposition", "tumble")
 MIN_PLATEAU_FRACTION = 0.8  # a run whose usable plateaus fall below this share of the plan fails the gate
-CHI2_BAND = (0.2, 5.0)  # acceptable reduced chi-square of plateau residuals (noise model consistency)
 
 
 def load_manifest(inputs) -> Manifest:

@@ -8,13 +8,12 @@ import pandas as pd
 
 from assets_lib.noise.allan import allan_deviations
 from assets_lib.noise.identification import fit_all, noise_table, plot_allan
+from assets_lib.records.validity import MODEL_INSIDE_CI_MIN  # one threshold for the gate and the record's status
 from assets_lib.stages.spec import StageOutput, stage
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
 
 #: confidence level of the stored Allan-deviation intervals
 CI_LEVEL = 0.95
-#: the fitted model must lie inside the per-tau 95 % interval at this share of the taus
-MODEL_INSIDE_CI_MIN = 0.8
 
 
 @stage("allan_deviation", level="capture", group="noise", code_version="1", upstream=["ingested_run"],

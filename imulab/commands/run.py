@@ -31,6 +31,7 @@ def command(landing, store, data_dir, dagster_home, verbose):
     failed partition with its reason, counts warnings, and the exit status is 1 when anything failed.
     """
     data = Path(data_dir)
+    _hold_workspace(data, store, dagster_home)  # released when the command ends
     if landing is None:
         landing = data / "landing"
         if not landing.is_dir() or not any(p for p in landing.iterdir() if not p.name.startswith("_")):
@@ -56,11 +57,15 @@ def command(landing, store, data_dir, dagster_home, verbose):
         raise click.BadParameter(f"no run folders (<device>/<run>/) in {landing}", param_hint="--archive")
     vstore = VersionedStore(store)
     t0 = time.time()
+    from pipelines.instance import fail_abandoned_runs, note_archive
     from pipelines.launch import LaunchSummary, open_instance, register_landed_runs
     from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
 
+    note_archive(store, landing)  # lets `imulab verify` find the archive from the store
     with open_instance(home) as instance:
+        for rid in fail_abandoned_runs(instance):
+            click.echo(f"marked Dagster run {rid} failed: the process running it was killed before it finished")
         new = register_landed_runs(instance, LabArchive(landing_dir=str(landing)))
         cap, dev = registered_keys(instance)
         click.echo(f"{len(cap)} captured runs registered ({len(new)} new) from {landing}")
@@ -128,3 +133,15 @@ def print_summary(plan, summary, vstore, waiting: list[str], echo=print) -> bool
     bad = bool(failed or runs_failed)
     echo(f"  status: {'FAILED' if bad else 'ok'} ({len(failed)} failed partition(s); exit status {1 if bad else 0})")
     return bad
+
+
+def _hold_workspace(data: Path, store, dagster_home):
+    """One run at a time per Dagster home and store (pipelines/instance.py): a second one waits, then refuses."""
+    from pipelines.instance import RunLockedError, acquire_run_lock
+
+    home = Path(dagster_home or os.environ.get("DAGSTER_HOME") or data / "dagster_home")
+    try:
+        click.get_current_context().call_on_close(acquire_run_lock(home, Path(store or data / "store"),
+                                                                   echo=click.echo).close)
+    except RunLockedError as e:
+        raise click.ClickException(str(e)) from None

@@ -1,16 +1,11 @@
 """Checks of the calibration stages (``assets_lib.stages.calibration``), reporting only: partitions rejected by
-the plateau gate, residuals consistent with the noise model, coefficients plausible for the device grade. Checks carry the assets'
-``partitions_def`` so they never load all partitions (docs/dagster.md 6.1)."""
+the plateau gate, residuals consistent with the noise model, coefficients plausible for the device grade.
+Checks carry the assets' ``partitions_def`` so they never load all partitions (docs/dagster.md 6.1)."""
 
 import dagster as dg
 
 from assets_lib.calibration.grades import implausible
-from assets_lib.stages.calibration import (
-    CHI2_BAND,
-    MIN_PLATEAU_FRACTION,
-    reduced_chi2,
-    usable_plateau_fraction,
-)
+from assets_lib.stages.calibration import CHI2_BAND, MIN_PLATEAU_FRACTION, reduced_chi2
 from pipelines.partitions import captures
 from pipelines.resources import ParquetStore
 
