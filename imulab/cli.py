@@ -18,7 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "verify": ("imulab.commands.verify", "Recompute a calibration record from the raw archive and check it."),
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
-    "diagnose": ("imulab.commands.diagnose", "Sim-to-real gap diagnosis of a calibrated run."),
+    "diagnose": ("imulab.commands.diagnose", "Sim-to-real gap diagnosis: where, which effect, how far it shrinks."),
 }
 
 

@@ -68,6 +68,7 @@ class ProcessedRun:
     keep: np.ndarray
     allan: dict = field(default_factory=dict)  # channel -> (tau_s, adev) for static runs
     spectrum_peak: dict = field(default_factory=dict)  # channel -> (log10 peak-to-median PSD ratio, frequency Hz)
+    noise_fits: dict = field(default_factory=dict)  # segmentation's pooled Allan model per channel
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,7 +184,7 @@ def process_run(inp: RunInputs, imu: pd.DataFrame, allan_taus: bool = True) -> P
                 if band.sum() > 8:
                     k = int(np.argmax(psd[band]))
                     peaks[ch] = (float(np.log10(psd[band][k] / np.median(psd[band]))), float(fq[band][k]))
-    return ProcessedRun(inp.run_id, p, fr, drift, drift_se, seg.window_step, seg.keep, allan, peaks)
+    return ProcessedRun(inp.run_id, p, fr, drift, drift_se, seg.window_step, seg.keep, allan, peaks, seg.noise_fits)
 
 
 def load_device(landing: str | Path, device_id: str) -> DeviceExperiment:

@@ -133,16 +133,15 @@ def _rails(exp: DeviceExperiment) -> tuple:
 
 
 def _noise(exp: DeviceExperiment) -> tuple:
-    statics = [r for r in exp.runs if r.kind == "static"]
-    src = [max(statics, key=lambda r: r.t_s.size)] if statics else list(exp.runs)
+    # median over every run's pooled plateau model: short plateaus bound the taus, so a slow deterministic drift
+    # of the long static record (temperature, warm-up) does not leak into the twin's noise (measured: with the
+    # static record alone a hidden temperature bias inflated K and hid itself from the plateau views)
+    src = list(exp.runs)
     out = []
-    from assets_lib.calibration.segmentation import segment_run
-
     for j, ch in enumerate(CHANNELS):
         vals = []
         for r in src:
-            seg = segment_run(r.manifest, exp.imu[r.run_id], r.table)
-            fit = seg.noise_fits.get(ch)
+            fit = exp.processed[r.run_id].noise_fits.get(ch)
             if fit is None:
                 continue
             b = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
