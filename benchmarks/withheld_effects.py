@@ -204,18 +204,18 @@ def cases(tier: str) -> list[dict]:
     return C
 
 
-def write_case(root: Path, c: dict, seed: int) -> dict:
+def write_case(root: Path, c: dict, seed: int, static: bool = True, cycles: int = 3) -> dict:
     landing = root / "landing"
     truth_dir = root / "truth"
     base = example_device(c["device_id"], c["grade"], seed)
     t0 = datetime(2026, 3, 2, 8, 0, tzinfo=timezone.utc)
     runs = []
-    for cycle in range(3):
+    for cycle in range(cycles):
         truth = base.for_power_cycle(cycle, seed, cycle * 7.0)
         start = t0 + timedelta(days=7 * cycle)
         plan = [("quick_rate", f"pc{cycle:02d}-rate", timedelta(0), {}, True),
                 ("quick_24_position", f"pc{cycle:02d}-pos24", timedelta(minutes=25), {}, True)]
-        if cycle == 0:
+        if cycle == 0 and static:
             plan.append(("static_long", f"pc{cycle:02d}-static", timedelta(minutes=45), {"static_duration_s": 900.0},
                          False))
         for name, rid, dt, kw, tab in plan:
@@ -293,7 +293,7 @@ def diagnose_all(root: Path, replicates: int, seed: int, workers: int | None, de
             continue
         t0 = time.time()
         d = diagnose_device(landing, dev, replicates=replicates, seed=seed, workers=workers,
-                            aug_replicates=max(6, replicates // 2))
+                            aug_replicates=max(4, replicates // 2))
         write_atomic(rep_dir / f"{dev}.json", json.dumps(_clean(d.report), indent=1) + "\n")
         r = d.report
         print(f"{dev}: {r['verdict']} {[e['family'] + '/' + str(e['channel']) for e in r['effects']]} "

@@ -194,18 +194,25 @@ def load_device(landing: str | Path, device_id: str) -> DeviceExperiment:
         raise FileNotFoundError(f"{landing}: no completed run of device {device_id!r} (expected "
                                 f"<landing>/{device_id}/<run>/ with a _COMPLETE marker)")
     ing = [ingest_run(d) for d in dirs]
-    ing.sort(key=lambda r: (r.manifest.start_time_utc, r.manifest.run_id))
+    return experiment_from_frames([(r.manifest, r.imu, r.table) for r in ing])
+
+
+def experiment_from_frames(frames) -> DeviceExperiment:
+    """A device experiment from (manifest, canonical imu, canonical table | None) of each run (one device)."""
+    ing = sorted(frames, key=lambda r: (r[0].start_time_utc, r[0].run_id))
+    if len({m.device.id for m, _, _ in ing}) != 1:
+        raise ValueError("experiment_from_frames: runs of more than one device")
     first = {}
-    for r in ing:
-        pc = int(r.manifest.power_cycle_index)
-        first.setdefault(pc, r.manifest.start_time_utc)
+    for m, _, _ in ing:
+        first.setdefault(int(m.power_cycle_index), m.start_time_utc)
     runs, imus, proc = [], {}, {}
-    for r in ing:
-        inp = run_inputs(r.manifest, r.imu, r.table, first[int(r.manifest.power_cycle_index)])
+    for m, imu, table in ing:
+        inp = run_inputs(m, imu, table, first[int(m.power_cycle_index)])
         runs.append(inp)
-        imus[inp.run_id] = r.imu
-        proc[inp.run_id] = process_run(inp, r.imu)
-    return DeviceExperiment(device_id, ing[0].manifest.device.grade or "", tuple(runs), imus, proc)
+        imus[inp.run_id] = imu
+        proc[inp.run_id] = process_run(inp, imu)
+    m0 = ing[0][0]
+    return DeviceExperiment(m0.device.id, m0.device.grade or "", tuple(runs), imus, proc)
 
 
 def list_devices(landing: str | Path) -> list[str]:
