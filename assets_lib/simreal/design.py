@@ -8,8 +8,9 @@ Refitting only those on a held-out run is then exactly the residualisation done 
 prediction of the attribution step is a p x p solve on the per-run Gram matrices (simreal.md sec. 4.2: "with
 per-run Gram matrices each (candidate x fold) fit is a p x p solve").
 
-Whitening: block A (plateau means) by the Cholesky factor of diag(sem^2) + K^2 min(t_i, t_j) (segmentation's
-Allan-based standard errors plus the twin's rate random walk K between plateaus of a run); block B by the twin's
+Whitening: block A (plateau means) by the Cholesky factor of diag(sem^2 - 2 ln2 tau^2) + tau^2 G + K^2 min(t_i, t_j)
+(segmentation's Allan-based standard errors, the twin's bias instability between plateaus with the library's 1/f
+kernel G of ``fit_core.log_kernel``, tau^2 = B^2/pi, and the twin's rate random walk K); block B by the twin's
 white, flicker and quantisation level of a 10-sample mean; block C by the alignment's standard error. Remaining
 misfit of the whitening (bias instability between plateaus) is calibrated by the sim-vs-sim distribution of
 every statistic, never assumed away.
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from assets_lib.calibration.fit_core import log_kernel
 from assets_lib.calibration.segmentation import CHANNELS
 from assets_lib.simreal import effects as fx
 from assets_lib.simreal.experiment import DECIMATE, ProcessedRun, RunInputs
@@ -109,6 +111,7 @@ def _project(yw, Xw, Nw):
 
 def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict, real_windows: dict,
                  rk_per_channel: np.ndarray) -> Design:
+    flicker_b = np.array([p.b for p in twin.noise])
     """Blocks A, B, C of one realisation. ``real_windows``: run -> list of (step, sample index array) of the
     real run's rate windows (block B rows are fixed by the recorded experiment)."""
     n_runs = len(runs)
@@ -157,7 +160,12 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                         X[:, list(at.cols)] = c
                 N = _nuisance(inp.kind, j, sub["omega"], sub["force"])
                 t = sub["t_run"] - sub["t_run"].min()
-                C = np.diag(s[idx] ** 2) + rk_per_channel[j] ** 2 * np.minimum.outer(t, t)
+                tlen = (p["t_end_s"].to_numpy(float) - p["t_start_s"].to_numpy(float))[idx]
+                # bias instability between plateaus: tau^2 G with the library's 1/f kernel (fit_core.log_kernel),
+                # tau^2 = B^2 / pi, the white part of the sems reduced by its Allan floor (as fit_core.flicker_gls)
+                tau2 = flicker_b[j] ** 2 / np.pi
+                D = np.maximum(s[idx] ** 2 - 2 * np.log(2) * tau2, 0.1 * s[idx] ** 2)
+                C = np.diag(D) + tau2 * log_kernel(sub["t_run"], tlen) + rk_per_channel[j] ** 2 * np.minimum.outer(t, t)
                 try:
                     L = np.linalg.cholesky(C)
                 except np.linalg.LinAlgError:
