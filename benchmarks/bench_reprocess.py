@@ -5,10 +5,10 @@ What is measured (all on this machine, SQLite instance on tmpfs, store on tmpfs)
 1. ``reprocess`` of a fresh archive of >= 200 simulated runs (short plans: ``--scale`` of the dwell times) through
    the real code location: plan (hash every raw file, walk the stage graph) + batched runs, captures then devices
    then fleet (``pipelines.reprocess.run_plan``). Runs per minute = captured runs / wall minutes.
-2. Where the wall time goes: time spent inside ``pipelines.stage.run_stage`` (versions, the stage compute, parquet
+2. Where the wall time goes: time spent inside ``pipelines.assets.run_stage`` (versions, the stage compute, parquet
    writes), the asset-check steps (from Dagster's step stats), and the rest (Dagster bookkeeping: run and step
-   set-up, event log writes, the per-partition materialization events). Cross-check: the same ``run_stage`` calls
-   in plain Python, without Dagster, on a fresh store.
+   set-up, event log writes, the per-partition materialization events). Cross-check: the engine's
+   ``compute_partition`` over every stage in plain Python, without Dagster, on a fresh store.
 3. An unchanged archive: plan only (the weekly no-op cost).
 4. With Redis + PostgreSQL installed (``.ci/services.sh``): the same batched ``calibrate_captures`` runs for a subset
    of the archive, launched concurrently with ``dagster job execute`` on ``pipelines.celery_defs`` against 1 and
@@ -58,18 +58,18 @@ def simulate(landing: Path, devices: int, cycles: int, scale: float) -> list[str
 
 
 class Timer:
-    """Accumulates the time spent inside ``pipelines.stage.run_stage`` (the asset bodies call it by name)."""
+    """Accumulates the time spent inside ``pipelines.assets.run_stage`` (the asset bodies call it by name)."""
 
     def __init__(self):
-        import pipelines.stage as st
+        import pipelines.assets as st
 
         self.st, self.orig, self.seconds, self.calls = st, st.run_stage, {}, 0
 
     def __enter__(self):
-        def timed(context, spec, store, archive):
+        def timed(context, graph, spec, store, archive):
             t = time.perf_counter()
             try:
-                return self.orig(context, spec, store, archive)
+                return self.orig(context, graph, spec, store, archive)
             finally:
                 self.seconds[spec.name] = self.seconds.get(spec.name, 0.0) + time.perf_counter() - t
                 self.calls += 1
@@ -91,19 +91,21 @@ def check_step_seconds(instance, run_ids) -> float:
 
 
 def _stage_names() -> set[str]:
-    from pipelines.stage import STAGES
+    from assets_lib.stages.registry import STAGES
 
-    return set(STAGES)
+    return set(STAGES.names)
 
 
 def in_process(landing: Path, store: Path, keys: list[str]) -> dict:
     import dagster as dg
 
+    from assets_lib.stages.plan import outcome
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import VersionedStore
     from pipelines import reprocess
     from pipelines.definitions import build_definitions
     from pipelines.launch import register_landed_runs
     from pipelines.resources import LabArchive
-    from pipelines.storage import VersionedStore
 
     home = Path(tempfile.mkdtemp(prefix="bench-dg-", dir="/dev/shm" if os.path.isdir("/dev/shm") else None))
     (home / "dagster.yaml").write_text("telemetry:\n  enabled: false\n")
@@ -114,7 +116,7 @@ def in_process(landing: Path, store: Path, keys: list[str]) -> dict:
         with dg.DagsterInstance.from_config(str(home)) as inst:
             register_landed_runs(inst, archive)
             t0 = time.perf_counter()
-            plan = reprocess.plan_for_instance(inst, vstore, archive)
+            plan = reprocess.plan_for_instance(inst, STAGES, vstore, archive.archive)
             t_plan = time.perf_counter() - t0
             with Timer() as timer:
                 t1 = time.perf_counter()
@@ -123,7 +125,7 @@ def in_process(landing: Path, store: Path, keys: list[str]) -> dict:
             wall = t_plan + t_runs
             checks = check_step_seconds(inst, [r for _, r, _ in summary.runs])
             stage_s = sum(timer.seconds.values())
-            written = sum(o == "rewritten" for _, o in reprocess.outcome(vstore, plan))
+            written = sum(o == "rewritten" for _, o in outcome(vstore, plan))
             out["reprocess"] = {
                 "captured_runs": len(keys), "stale_partitions": len(plan.stale), "partitions_written": written,
                 "dagster_runs": len(summary.runs),
@@ -137,53 +139,41 @@ def in_process(landing: Path, store: Path, keys: list[str]) -> dict:
                 "computation_share": round((t_plan + stage_s + checks) / wall, 3),
             }
             t2 = time.perf_counter()
-            noop = reprocess.plan_for_instance(inst, vstore, archive)
+            noop = reprocess.plan_for_instance(inst, STAGES, vstore, archive.archive)
             out["unchanged"] = {"stale_partitions": len(noop.stale), "plan_s": round(time.perf_counter() - t2, 2)}
     finally:
         shutil.rmtree(home, ignore_errors=True)
     return out
 
 
-class _Log:
-    def error(self, msg):
-        pass
-
-    warning = info = debug = error
-
-
-class _Ctx:
-    """The part of Dagster's asset context that run_stage uses."""
-
-    def __init__(self, keys):
-        self.partition_keys = keys
-        self.log = _Log()
-        self.run_id = None
-
-
 def plain_python(landing: Path, store: Path, keys: list[str]) -> dict:
-    """The same run_stage calls without Dagster (fresh store), in dependency order."""
-    from pipelines import reprocess
-    from pipelines.partitions import split_capture_key
-    from pipelines.resources import LabArchive
-    from pipelines.stage import FLEET_KEY, run_stage
-    from pipelines.storage import VersionedStore
+    """The same partitions computed by the engine without Dagster (fresh store), in stage order."""
+    from assets_lib.stages.engine import compute_partition, stage_keys
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive, VersionedStore, split_capture_key
 
-    archive, vstore = LabArchive(landing_dir=str(landing)), VersionedStore(store)
+    archive, vstore = LandingArchive(landing), VersionedStore(store)
     devices = sorted({split_capture_key(k)[0] for k in keys})
     t0 = time.perf_counter()
     written = 0
-    for spec in reprocess.stage_order():
-        ks = {"capture": keys, "device": devices}.get(spec.level, [FLEET_KEY])
-        w = run_stage(_Ctx(ks), spec, vstore, archive).metadata["written"]
-        written += int(getattr(w, "value", w))
+    for spec in STAGES:
+        for k in stage_keys(spec, keys, devices):
+            written += compute_partition(STAGES, spec, k, vstore, archive).status == "written"
     return {"wall_s": round(time.perf_counter() - t0, 2), "partitions_written": written}
 
 
 def celery_scaling(landing: Path, root: Path, keys: list[str], n_runs: int, blocks: int) -> dict:
     import dagster as dg
+    from local_services import (
+        CeleryWorker,
+        LocalPostgres,
+        LocalRedis,
+        celery_yaml,
+        missing,
+        wait_for_workers,
+    )
 
-    from local_services import CeleryWorker, LocalPostgres, LocalRedis, celery_yaml, missing, wait_for_workers
-    from pipelines.defs.sensors import range_tags
+    from pipelines.jobs import range_tags
     from pipelines.launch import register_landed_runs
     from pipelines.resources import LabArchive
 
@@ -264,10 +254,9 @@ def main(argv=None):
                              "plans": ["quick_24_position", "quick_rate"], "duration_scale": args.scale,
                              "simulate_s": round(time.perf_counter() - t0, 1)}
         print(f"simulated {len(keys)} runs in {report['archive']['simulate_s']} s", flush=True)
-        from pipelines.stage import STAGES
-        import pipelines.definitions  # noqa: F401
+        from assets_lib.stages.registry import STAGES
 
-        report["stages"] = sorted(STAGES)
+        report["stages"] = sorted(STAGES.names)
         report.update(in_process(root / "landing", root / "store", keys))
         r = report["reprocess"]
         print(f"reprocess: {r['captured_runs']} runs, {r['stale_partitions']} partitions in {r['wall_s']} s "
@@ -279,7 +268,7 @@ def main(argv=None):
             report["plain_python"] = plain_python(root / "landing", root / "store_plain", keys)
             pp = report["plain_python"]["wall_s"]
             report["plain_python"]["dagster_overhead_share_vs_plain"] = round(1 - pp / r["runs_s"], 3)
-            print(f"plain Python (same run_stage calls, no Dagster, no checks): {pp} s "
+            print(f"plain Python (the engine over the same partitions, no Dagster, no checks): {pp} s "
                   f"-> Dagster + checks = {report['plain_python']['dagster_overhead_share_vs_plain']:.0%} of run time")
         if not args.no_celery:
             report["celery"] = celery_scaling(root / "landing", root, keys, args.celery_runs, args.celery_blocks)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipelines.storage import VersionedStore
+from assets_lib.store import VersionedStore
 
 _HEADLINE = [
     ("gyro_rate_fit", "gyro", "scale_factor"),

@@ -1,18 +1,23 @@
 """Asset checks generated from the schemas in ``raw_schemas`` (PUDL style): a stored table whose columns or types
 differ from its contract fails a blocking check, so a bad upstream never feeds downstream stages."""
 
-
 import dagster as dg
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from assets_lib.stages.engine import StageGraph
 from pipelines.partitions import captures
 from pipelines.resources import ParquetStore
-from raw_schemas.derived import ALLAN_SCHEMA, COEFFICIENT_SCHEMA, NOISE_SCHEMA, PLATEAU_SCHEMA, conformance_problems
+from raw_schemas.derived import (
+    ALLAN_SCHEMA,
+    COEFFICIENT_SCHEMA,
+    NOISE_SCHEMA,
+    PLATEAU_SCHEMA,
+    conformance_problems,
+)
 from raw_schemas.tables import CANONICAL_IMU_SCHEMA, CANONICAL_TABLE_SCHEMA
 
-#: (asset, stored table, Arrow schema, required?, exact?) contracts checked after every materialization;
-#: a contract whose asset is not defined (yet) is skipped
+#: (asset, stored table, Arrow schema, required?, exact?) contracts checked after every materialization
 SCHEMA_CONTRACTS: list[tuple[str, str, pa.Schema, bool, bool]] = [
     ("ingested_run", "imu", CANONICAL_IMU_SCHEMA, True, True),
     ("ingested_run", "table", CANONICAL_TABLE_SCHEMA, False, True),
@@ -52,7 +57,6 @@ def build_schema_check(asset: str, table: str, schema: pa.Schema, required: bool
     return _check
 
 
-def all_checks() -> list:
-    from pipelines.stage import STAGES
-
-    return [build_schema_check(*c) for c in SCHEMA_CONTRACTS if c[0] in STAGES]
+def schema_checks(graph: StageGraph) -> list:
+    """The schema checks of the contracts whose asset is a stage of ``graph``."""
+    return [build_schema_check(*c) for c in SCHEMA_CONTRACTS if c[0] in graph]

@@ -1,25 +1,25 @@
-"""The imulab code location: every asset, check, sensor, schedule, job and resource, in one place.
+"""The imulab code location, assembled from explicit lists: the stage assets (one per stage of
+``assets_lib.stages.registry.STAGES``), their checks, the jobs per level, sensors, schedules and resources.
 
-Each module of ``pipelines/defs/`` contributes module-level lists (``ASSETS``, ``CHECKS``, ``SENSORS``,
-``SCHEDULES``); stage assets register themselves in ``pipelines.stage.STAGES`` so the three jobs below select
-them by level. Paths come from the environment: ``IMULAB_LANDING`` (the lab archive's landing folder, read-only)
-and ``IMULAB_STORE`` (versioned parquet outputs), defaults under ``./imulab_data``. The default executor is
-in-process: partitions are batched into single runs (docs/dagster.md 4).
+Paths come from the environment: ``IMULAB_LANDING`` (the lab archive's landing folder, read-only) and
+``IMULAB_STORE`` (versioned parquet outputs), defaults under ``./imulab_data``. The default executor is
+in-process: partitions are batched into single runs (docs/dagster.md 4). ``build_definitions(stages=...)``
+builds the same location over another stage graph (tests use toy stages).
 """
 
-import importlib
-import importlib.util
 import os
 
 import dagster as dg
 
-from pipelines import checks
+from assets_lib.stages.engine import StageGraph
+from assets_lib.stages.registry import STAGES
+from pipelines import assets, checks, jobs
+from pipelines.defs import calibration, fleet, noise, records, schedules, sensors
 from pipelines.resources import LabArchive, ParquetStore
-from pipelines.stage import STAGES
 
 DATA_DIR = os.environ.get("IMULAB_DATA", "imulab_data")
-#: stage modules in dependency order (a module that does not exist yet is skipped)
-DEFS_MODULES = ("ingest", "calibration", "noise", "repeatability", "records", "fleet", "sensors", "schedules")
+#: the checks of the stages (each names its stage's asset; a graph without that stage has no such check)
+STAGE_CHECKS = [*calibration.CHECKS, *noise.CHECKS, *records.CHECKS, *fleet.CHECKS]
 
 
 def default_paths() -> tuple[str, str]:
@@ -28,42 +28,29 @@ def default_paths() -> tuple[str, str]:
     return os.path.abspath(landing), os.path.abspath(store)
 
 
-def _modules():
-    for name in DEFS_MODULES:
-        full = f"pipelines.defs.{name}"
-        if importlib.util.find_spec(full) is not None:
-            yield importlib.import_module(full)
+def resources(landing_dir: str, store_dir: str, stages: StageGraph = STAGES) -> dict:
+    """``archive`` and ``store`` for the assets; ``stages`` (the graph itself) for launchers reading the location."""
+    return {"archive": LabArchive(landing_dir=landing_dir), "store": ParquetStore(root=store_dir), "stages": stages}
 
 
-def _collect(attr: str) -> list:
-    return [x for m in _modules() for x in getattr(m, attr, [])]
-
-
-def _stage_job(name: str, level: str, description: str):
-    names = [s.name for s in STAGES.values() if s.level == level]
-    return dg.define_asset_job(name, selection=dg.AssetSelection.assets(*names), description=description) if names else None
-
-
-def resources(landing_dir: str, store_dir: str) -> dict:
-    return {"archive": LabArchive(landing_dir=landing_dir), "store": ParquetStore(root=store_dir)}
+def _checks_of(graph: StageGraph) -> list:
+    out = checks.schema_checks(graph)
+    for c in STAGE_CHECKS:
+        if all(k.asset_key.to_user_string() in graph for k in c.check_keys):
+            out.append(c)
+    return out
 
 
 def build_definitions(landing_dir: str | None = None, store_dir: str | None = None, extra_resources: dict | None = None,
-                      executor=dg.in_process_executor) -> dg.Definitions:
+                      executor=dg.in_process_executor, stages: StageGraph = STAGES) -> dg.Definitions:
     landing, store = default_paths()
-    assets = _collect("ASSETS")
-    jobs = [j for j in (
-        _stage_job("calibrate_captures", "capture", "Every per-run stage for a batch of captured runs (one run per partition range)."),
-        _stage_job("calibrate_devices", "device", "Per-device stages (repeatability, records) over a range of devices."),
-        _stage_job("fleet_summary", "fleet", "Fleet-wide coefficient drift."),
-    ) if j is not None]
     return dg.Definitions(
-        assets=assets,
-        asset_checks=checks.all_checks() + _collect("CHECKS"),
-        jobs=jobs + _collect("JOBS"),
-        sensors=_collect("SENSORS"),
-        schedules=_collect("SCHEDULES"),
-        resources={**resources(landing_dir or landing, store_dir or store), **(extra_resources or {})},
+        assets=assets.stage_assets(stages),
+        asset_checks=_checks_of(stages),
+        jobs=jobs.stage_jobs(stages),
+        sensors=sensors.sensors(stages),
+        schedules=schedules.schedules(stages),
+        resources={**resources(landing_dir or landing, store_dir or store, stages), **(extra_resources or {})},
         executor=executor,
     )
 

@@ -2,44 +2,43 @@
 
 Order: every per-run stage over all capture partitions in one run, then every per-device stage over all device
 partitions in one run, then the fleet stage. Reused versions cost only a lookup, so running over everything is
-cheap; ``reprocess`` narrows the ranges to stale partitions.
+cheap; ``pipelines.reprocess`` narrows the ranges to stale partitions.
 """
 
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import dagster as dg
 
-from pipelines.defs.sensors import JOB_LEVEL, RANGE_END, RANGE_START, contiguous_blocks, landing_sensor, range_tags
-from pipelines.partitions import captures, devices
+from assets_lib.stages.plan import plan_reprocess, record_no_output
+from assets_lib.store import FLEET_KEY
+from pipelines.jobs import (
+    CAPTURES_JOB,
+    DEVICES_JOB,
+    FLEET_JOB,
+    JOB_LEVEL,
+    RANGE_END,
+    RANGE_START,
+    contiguous_blocks,
+    range_tags,
+)
+from pipelines.instance import open_instance, process_tags  # noqa: F401 - open_instance re-exported
+from pipelines.partitions import (
+    captures,
+    devices,
+    new_partition_requests,
+    registered_keys,
+)
 from pipelines.resources import LabArchive
 
 QUIET = {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
 
 
-def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterInstance:
-    """A persistent instance in ``dagster_home`` (or $DAGSTER_HOME), so ``dagster dev`` shows the same runs."""
-    home = dagster_home or os.environ.get("DAGSTER_HOME")
-    if home is None:
-        raise ValueError("no Dagster home given and DAGSTER_HOME is not set")
-    home = Path(home).resolve()
-    home.mkdir(parents=True, exist_ok=True)
-    cfg = home / "dagster.yaml"
-    if not cfg.exists():
-        cfg.write_text("telemetry:\n  enabled: false\n")
-    return dg.DagsterInstance.from_config(str(home))
-
-
 def register_landed_runs(instance: dg.DagsterInstance, archive: LabArchive) -> list[str]:
-    """Evaluate the landing sensor once and apply its partition requests; returns the new capture keys."""
-    with dg.build_sensor_context(instance=instance, resources={"archive": archive}) as context:
-        result = landing_sensor(context)
-    new: list[str] = []
-    for req in getattr(result, "dynamic_partitions_requests", None) or []:
+    """Register every completed run of the archive not registered yet (as the landing sensor does, without
+    requesting runs); returns the new capture keys."""
+    new, requests = new_partition_requests(instance, archive.complete_runs())
+    for req in requests:
         instance.add_dynamic_partitions(req.partitions_def_name, list(req.partition_keys))
-        if req.partitions_def_name == captures.name:
-            new += list(req.partition_keys)
     return new
 
 
@@ -54,15 +53,13 @@ class LaunchSummary:
         return all(ok for _, _, ok in self.runs)
 
 
-_contiguous_blocks = contiguous_blocks  # backward-compatible name
-
-
 def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, tags: dict | None = None,
             asset_selection=None, quiet: bool = True, summary: LaunchSummary | None = None) -> LaunchSummary:
     """One in-process run of ``job_name`` (optionally a subset of its assets) on ``instance``."""
     summary = summary if summary is not None else LaunchSummary()
     res = defs.resolve_job_def(job_name).execute_in_process(
-        instance=instance, run_config=QUIET if quiet else None, tags=tags, asset_selection=asset_selection,
+        instance=instance, run_config=QUIET if quiet else None, tags={**(tags or {}), **process_tags()},
+        asset_selection=asset_selection,
         raise_on_error=False)
     summary.runs.append((job_name, res.run_id, res.success))
     steps = {e.step_key for e in res.all_events if e.is_step_success and e.step_key}
@@ -74,8 +71,6 @@ def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, t
 
 def _covered_keys(instance: dg.DagsterInstance, job_name: str, tags: dict) -> list[str]:
     """Partition keys a run of ``job_name`` with ``tags`` covers (the fleet key for unpartitioned jobs)."""
-    from pipelines.stage import FLEET_KEY
-
     if RANGE_START not in tags:
         return [FLEET_KEY]
     name = captures.name if JOB_LEVEL.get(job_name) == "capture" else devices.name
@@ -104,19 +99,19 @@ def materialize_archive(defs: dg.Definitions, instance: dg.DagsterInstance, capt
                         record_outcomes: bool = True) -> LaunchSummary:
     """The main job: per-run stages, then per-device stages, then the fleet stage.
 
-    With ``record_outcomes``, partitions whose stage ran but produced no output are noted for ``reprocess``
-    (``pipelines.reprocess.record_no_output``), so an unchanged archive has nothing stale afterwards."""
-    summary = execute(defs, instance, "calibrate_captures", captures.name, capture_keys, quiet)
+    With ``record_outcomes``, partitions whose stage ran but produced no output are noted for reprocessing
+    (``assets_lib.stages.plan.record_no_output``), so an unchanged archive has nothing stale afterwards."""
     job_names = {j.name for j in defs.resolve_all_job_defs()}
-    if "calibrate_devices" in job_names:
-        execute(defs, instance, "calibrate_devices", devices.name, device_keys, quiet, summary)
-    if "fleet_summary" in job_names:
-        execute(defs, instance, "fleet_summary", None, None, quiet, summary)
+    summary = LaunchSummary()
+    if CAPTURES_JOB in job_names:
+        execute(defs, instance, CAPTURES_JOB, captures.name, capture_keys, quiet, summary)
+    if DEVICES_JOB in job_names:
+        execute(defs, instance, DEVICES_JOB, devices.name, device_keys, quiet, summary)
+    if FLEET_JOB in job_names:
+        execute(defs, instance, FLEET_JOB, None, None, quiet, summary)
     if record_outcomes and capture_keys is None and device_keys is None:
-        from pipelines import reprocess
-
         store = defs.resources["store"].store
-        archive = defs.resources["archive"]
-        plan = reprocess.plan_for_instance(instance, store, archive, use_ledger=False)
-        reprocess.record_no_output(store, plan, summary.attempted)
+        archive = defs.resources["archive"].archive
+        plan = plan_reprocess(defs.resources["stages"], store, archive, *registered_keys(instance), use_ledger=False)
+        record_no_output(store, plan, summary.attempted)
     return summary

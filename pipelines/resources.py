@@ -1,4 +1,5 @@
-"""Resources: the lab archive (landing folder of raw runs, read-only) and the versioned parquet store."""
+"""Resources: the lab archive (landing folder of raw runs, read-only) and the versioned parquet store, as thin
+Dagster wrappers of ``assets_lib.store.LandingArchive`` and ``assets_lib.store.VersionedStore``."""
 
 from __future__ import annotations
 
@@ -6,9 +7,7 @@ from pathlib import Path
 
 import dagster as dg
 
-from pipelines.partitions import capture_key, split_capture_key
-from pipelines.storage import VersionedStore
-from raw_schemas.readers import discover_runs
+from assets_lib.store import LandingArchive, VersionedStore
 
 
 class LabArchive(dg.ConfigurableResource):
@@ -16,20 +15,20 @@ class LabArchive(dg.ConfigurableResource):
 
     landing_dir: str
 
+    @property
+    def archive(self) -> LandingArchive:
+        return LandingArchive(Path(self.landing_dir))
+
     def complete_runs(self) -> dict[str, Path]:
         """Partition key -> folder of every run whose ``_COMPLETE`` marker exists."""
-        root = Path(self.landing_dir)
-        if not root.is_dir():
-            return {}
-        return {capture_key(p.parent.name, p.name): p for p in discover_runs(root)}
+        return self.archive.complete_runs()
 
     def run_dir(self, partition_key: str) -> Path:
-        device_id, run_id = split_capture_key(partition_key)
-        return Path(self.landing_dir) / device_id / run_id
+        return self.archive.run_dir(partition_key)
 
 
 class ParquetStore(dg.ConfigurableResource):
-    """Versioned parquet outputs under ``root`` (see ``pipelines.storage``)."""
+    """Versioned parquet outputs under ``root`` (see ``assets_lib.store.versioned``)."""
 
     root: str
 

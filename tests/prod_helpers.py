@@ -15,8 +15,9 @@ import dagster as dg
 import pandas as pd
 
 from assets_lib.sim.simulator import example_device, simulate_run, write_run
-from pipelines.partitions import capture_key
-from pipelines.stage import STAGES, StageOutput, stage
+from assets_lib.stages.engine import StageGraph
+from assets_lib.stages.spec import StageOutput, stage
+from assets_lib.store import capture_key
 
 SHM = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
 QUIET = {"loggers": {"console": {"config": {"log_level": "WARNING"}}}}
@@ -99,9 +100,8 @@ def _means(df: pd.DataFrame) -> pd.DataFrame:
     return num.mean().to_frame("mean").reset_index(names="column")
 
 
-def register_toy_stages(code_version_a: str = "1") -> list:
-    """Register the toy stages in ``STAGES`` and return their assets (callers restore ``STAGES`` afterwards)."""
-    import pipelines.definitions  # noqa: F401  (registers the real stages first: toy stages depend on ingest)
+def toy_stage_list(code_version_a: str = "1") -> list:
+    """The toy stages (specs; nothing is registered anywhere)."""
 
     @stage("toy_capture_a", level="capture", group=TOY_GROUP, code_version=code_version_a, upstream=("ingested_run",))
     def toy_capture_a(key, inputs):
@@ -134,40 +134,22 @@ def register_toy_stages(code_version_a: str = "1") -> list:
     return [toy_capture_a, toy_capture_b, toy_side, toy_device, toy_fleet]
 
 
+def toy_graph(code_version_a: str = "1") -> StageGraph:
+    """An orchestration-only stage graph: the real ingest stage plus the toy stages (the science stages are left
+    out, so these tests exercise sensors, schedules and reprocessing independently of the fits)."""
+    from assets_lib.stages.registry import STAGES
+
+    return StageGraph([STAGES["ingested_run"], *toy_stage_list(code_version_a)])
+
+
 @contextlib.contextmanager
 def toy_stages(code_version_a: str = "1"):
-    """An orchestration-only stage registry: the real ingest stage plus the toy stages (the science stages are
-    left out, so these tests exercise sensors, schedules and reprocessing independently of the fits)."""
-    import pipelines.definitions  # noqa: F401
-
-    saved = dict(STAGES)
-    try:
-        STAGES.clear()
-        STAGES["ingested_run"] = saved["ingested_run"]
-        yield register_toy_stages(code_version_a)
-    finally:
-        STAGES.clear()
-        STAGES.update(saved)
+    """``toy_graph`` as a context (kept for the tests' structure; nothing global is changed)."""
+    yield toy_graph(code_version_a)
 
 
-def toy_definitions(landing, store, toy_assets) -> dg.Definitions:
-    """The code location's ingest asset, schema checks, jobs, sensors, schedules and resources, built the way
-    ``pipelines.definitions.build_definitions`` builds them, over the registry of ``toy_stages``."""
-    import pipelines.definitions as location
-    from pipelines import checks
-    from pipelines.defs import ingest, schedules, sensors
+def toy_definitions(landing, store, graph: StageGraph) -> dg.Definitions:
+    """The code location (``pipelines.definitions.build_definitions``) over the toy stage graph."""
+    from pipelines.definitions import build_definitions
 
-    assets = [*ingest.ASSETS, *toy_assets]
-    names = {a.key.to_user_string() for a in assets}
-    jobs = [j for j in (location._stage_job("calibrate_captures", "capture", ""),
-                        location._stage_job("calibrate_devices", "device", ""),
-                        location._stage_job("fleet_summary", "fleet", "")) if j is not None]
-    return dg.Definitions(
-        assets=assets,
-        asset_checks=[checks.build_schema_check(*c) for c in checks.SCHEMA_CONTRACTS if c[0] in names],
-        jobs=jobs,
-        sensors=sensors.SENSORS,
-        schedules=schedules.SCHEDULES,
-        resources=location.resources(str(landing), str(store)),
-        executor=dg.in_process_executor,
-    )
+    return build_definitions(str(landing), str(store), stages=graph)

@@ -16,7 +16,7 @@ from pathlib import Path
 import dagster as dg
 import pytest
 
-from pipelines.stage import SOURCE_TAG
+from assets_lib.stages.spec import SOURCE_TAG
 
 SNAPSHOT = Path(__file__).with_name("snapshots") / "asset_graph.json"
 REPO = Path(__file__).resolve().parents[1]

@@ -109,3 +109,47 @@ def test_errors_are_reported(tmp_path, record):
     bad.to_csv(csv, index=False)
     res = CliRunner().invoke(main, ["allan", str(csv), "--rate-hz", "100"])
     assert res.exit_code != 0 and "non-finite" in res.output
+
+
+@pytest.fixture(scope="module")
+def contract_run(tmp_path_factory):
+    """A short static run written as a lab's capture job writes it: integer counts plus a manifest with the LSB."""
+    from assets_lib.sim.simulator import example_device, simulate_run, write_run
+
+    truth = example_device("TAC-050", "tactical", 5)
+    run = simulate_run(truth, "static_long", "pc00-static", seed=5, table_log=False,
+                       plan_kwargs={"static_duration_s": 300.0})
+    return write_run(run, tmp_path_factory.mktemp("landing"))
+
+
+def test_contract_run_read_in_manifest_units(contract_run, tmp_path):
+    """Issue 10 item 7: the IMU stream of a contract run is read as counts x LSB in the manifest's unit (-> SI) at
+    the manifest's rate, the same numbers ingestion gives, not counts taken for rad/s."""
+    from raw_schemas.readers import ingest_run
+
+    imu = contract_run / "imu.parquet"
+    assert pd.api.types.is_integer_dtype(pd.read_parquet(imu)["gyro_x"])  # raw counts
+    out_json = tmp_path / "a.json"
+    res = _run([imu, "--taus", "octave", "--json", out_json])
+    assert res.exit_code == 0, res.output
+    assert "contract run TAC-050/pc00-static" in res.output and "gyro_x counts x" in res.output
+    doc = json.loads(out_json.read_text())
+    assert set(doc["channels"]) == {"gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"}
+    si = ingest_run(contract_run).imu
+    for raw, canon in (("gyro_x", "gyro_x_radps"), ("accel_z", "accel_z_mps2")):
+        ch = doc["channels"][raw]
+        ref = al.oadev(si[canon].to_numpy(), doc["rate_hz"], "octave")
+        np.testing.assert_allclose(ch["allan"]["adev"], ref.adev, rtol=1e-9)
+    assert doc["channels"]["gyro_x"]["unit"] == "rad/s" and doc["channels"]["accel_z"]["unit"] == "m/s^2"
+    n = {(p["name"], p["method"]): p for p in doc["channels"]["gyro_x"]["noise"]}[("N", "fit")]
+    assert n["unit_lab"] == "deg/sqrt(h)" and 1e-3 < n["value_lab"] < 10  # a tactical ARW, not 5.7e4
+    res = _run([imu, "--units", "deg/s"])
+    assert res.exit_code != 0 and "units come from the manifest" in res.output
+
+
+def test_counts_without_a_manifest_are_refused(contract_run, tmp_path):
+    lone = tmp_path / "imu.parquet"
+    lone.write_bytes((contract_run / "imu.parquet").read_bytes())
+    res = _run([lone])
+    assert res.exit_code != 0
+    assert "hold integers, i.e. raw counts" in res.output and "no manifest.json" in res.output

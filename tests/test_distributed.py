@@ -43,7 +43,7 @@ def test_two_celery_workers_match_in_process():
     if miss:
         pytest.skip("scale-out services not installed (run .ci/services.sh): " + "; ".join(miss))
     from pipelines.definitions import build_definitions
-    from pipelines.defs.sensors import range_tags
+    from pipelines.jobs import range_tags
     from pipelines.launch import execute, register_landed_runs
     from pipelines.resources import LabArchive
 

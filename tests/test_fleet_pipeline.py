@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 
 from assets_lib.sim.simulator import DEGPH, example_device, simulate_run, write_run
-from pipelines.storage import VersionedStore
+from assets_lib.store import VersionedStore
 
 DRIFTING, STABLE = "DRF-001", "STB-002"
 DRIFT_DEGPH_PER_DAY = 3.0  # vs a turn-on repeatability of 1 deg/h: 63 deg/h over the 21 days of the series

@@ -12,17 +12,24 @@ from pathlib import Path
 import dagster as dg
 import pandas as pd
 import pytest
+from prod_helpers import (
+    SHM,
+    TOY_STAGES,
+    temp_instance,
+    toy_definitions,
+    toy_stages,
+    tree_digest,
+    write_realistic_archive,
+    write_small_archive,
+)
 
-import pipelines.definitions  # noqa: F401  (registers every stage, as the code location does)
+from assets_lib.stages import plan as planning
+from assets_lib.stages.spec import SOURCE_TAG, StageOutput, stage
+from assets_lib.store import LandingArchive, VersionedStore, split_capture_key
 from pipelines import reprocess
-from pipelines.defs.sensors import RANGE_END, RANGE_START
+from pipelines.jobs import RANGE_END, RANGE_START
 from pipelines.launch import materialize_archive, register_landed_runs
-from pipelines.partitions import split_capture_key
 from pipelines.resources import LabArchive, ParquetStore
-from pipelines.stage import SOURCE_TAG
-from pipelines.storage import VersionedStore
-from prod_helpers import (SHM, TOY_STAGES, temp_instance, toy_definitions, toy_stages, tree_digest,
-                          write_realistic_archive, write_small_archive)
 
 warnings.filterwarnings("ignore")
 TOY_CHAIN = {"toy_capture_a", "toy_capture_b", "toy_device", "toy_fleet"}
@@ -51,8 +58,8 @@ def setup(instance, defs, landing):
     return summary
 
 
-def plan_of(instance, landing, store) -> reprocess.ReprocessPlan:
-    return reprocess.plan_for_instance(instance, VersionedStore(store), LabArchive(landing_dir=str(landing)))
+def plan_of(instance, landing, store, graph) -> planning.ReprocessPlan:
+    return reprocess.plan_for_instance(instance, graph, VersionedStore(store), LandingArchive(Path(landing)))
 
 
 def stale_set(plan) -> set[tuple[str, str]]:
@@ -87,7 +94,7 @@ def test_nothing_changed_nothing_runs(pristine_archive, workdir):
         defs = toy_definitions(landing, store, toys)
         setup(inst, defs, landing)
         before, runs_before = tree_digest(store), inst.get_runs_count()
-        plan = plan_of(inst, landing, store)
+        plan = plan_of(inst, landing, store, toys)
         assert plan.empty and plan.up_to_date >= len(keys) * 4 + 3
         for name in ("reprocess_captures_weekly", "reprocess_devices_weekly", "reprocess_fleet_weekly"):
             assert schedule_requests(defs, name, inst, landing, store) == []
@@ -106,7 +113,7 @@ def test_code_version_change_recomputes_that_stage_and_downstream_only(pristine_
         old = {(s, k): vstore.current_version(s, k) for s in ("toy_capture_a", "ingested_run", "toy_side") for k in keys}
         with toy_stages("2") as toys2:  # a new release of toy_capture_a's code
             defs2 = toy_definitions(landing, store, toys2)
-            plan = plan_of(inst, landing, store)
+            plan = plan_of(inst, landing, store, toys2)
             expected = ({(s, k) for s in ("toy_capture_a", "toy_capture_b") for k in keys}
                         | {("toy_device", d) for d in devices} | {("toy_fleet", "fleet")})
             assert stale_set(plan) == expected
@@ -126,7 +133,7 @@ def test_code_version_change_recomputes_that_stage_and_downstream_only(pristine_
 
             summary = reprocess.run_plan(defs2, inst, plan, vstore)
             assert summary.success and [j for j, _, _ in summary.runs] == ["calibrate_captures", "calibrate_devices", "fleet_summary"]
-            assert plan_of(inst, landing, store).empty
+            assert plan_of(inst, landing, store, toys2).empty
             for k in keys:
                 assert vstore.current_version("toy_capture_a", k) == plan.expected[("toy_capture_a", k)] != old[("toy_capture_a", k)]
                 assert len(vstore.versions("toy_capture_a", k)) == 2 and len(vstore.versions("toy_capture_b", k)) == 2
@@ -135,7 +142,7 @@ def test_code_version_change_recomputes_that_stage_and_downstream_only(pristine_
                 # audit: the old version is still there and readable
                 assert vstore.read_meta("toy_capture_a", k, old[("toy_capture_a", k)])["code_version"].split(SOURCE_TAG)[0] == "1"
                 assert not vstore.read("toy_capture_a", k, "means", old[("toy_capture_a", k)]).empty
-            assert all(o == "rewritten" for _, o in reprocess.outcome(vstore, plan))
+            assert all(o == "rewritten" for _, o in planning.outcome(vstore, plan))
 
 
 def test_relanded_raw_file_recomputes_only_that_partition(pristine_archive, workdir):
@@ -150,7 +157,7 @@ def test_relanded_raw_file_recomputes_only_that_partition(pristine_archive, work
         changed = [keys[0], keys[2]]  # not adjacent: two blocks
         for k in changed:
             bump_raw(landing, k)
-        plan = plan_of(inst, landing, store)
+        plan = plan_of(inst, landing, store, toys)
         expected = ({(s, k) for s in ("ingested_run", "toy_capture_a", "toy_capture_b", "toy_side") for k in changed}
                     | {("toy_device", split_capture_key(k)[0]) for k in changed} | {("toy_fleet", "fleet")})
         assert stale_set(plan) == expected
@@ -167,7 +174,7 @@ def test_relanded_raw_file_recomputes_only_that_partition(pristine_archive, work
         assert defs.resolve_job_def("calibrate_devices").execute_in_process(instance=inst, tags=dreq.tags).success
         (freq,) = schedule_requests(defs, "reprocess_fleet_weekly", inst, landing, store)
         assert defs.resolve_job_def("fleet_summary").execute_in_process(instance=inst, tags=freq.tags).success
-        assert plan_of(inst, landing, store).empty
+        assert plan_of(inst, landing, store, toys).empty
 
         for (s, k), v in before.items():
             if k in changed:
@@ -184,8 +191,6 @@ def test_relanded_raw_file_recomputes_only_that_partition(pristine_archive, work
 def test_no_output_partitions_are_not_requested_again(pristine_archive, workdir):
     """A stage that produces nothing for a partition (compute returns None) is not retried until its inputs or
     code change, so an unchanged archive has nothing stale after `imulab run`."""
-    from pipelines.stage import StageOutput, stage
-
     src, keys = pristine_archive
     landing, store = copy_landing(src, workdir / "landing"), workdir / "store"
     with toy_stages() as toys, temp_instance() as inst:
@@ -194,15 +199,16 @@ def test_no_output_partitions_are_not_requested_again(pristine_archive, workdir)
             """Toy: output only for the TST-A runs."""
             return StageOutput(tables={"x": pd.DataFrame({"a": [1]})}) if key.startswith("TST-A") else None
 
-        defs = toy_definitions(landing, store, [*toys, toy_picky])
+        graph = toys.with_stages(toy_picky)
+        defs = toy_definitions(landing, store, graph)
         setup(inst, defs, landing)
-        plan = plan_of(inst, landing, store)
+        plan = plan_of(inst, landing, store, graph)
         assert plan.empty and sorted(k for s, k, _ in plan.no_output) == [k for k in keys if k.startswith("TST-B")]
         bump_raw(landing, keys[-1])  # new input for a TST-B run: tried again
-        plan = plan_of(inst, landing, store)
+        plan = plan_of(inst, landing, store, graph)
         assert ("toy_picky", keys[-1]) in {(s.stage, s.key) for s in plan.stale}
         assert reprocess.run_plan(defs, inst, plan, VersionedStore(store)).success
-        assert plan_of(inst, landing, store).empty
+        assert plan_of(inst, landing, store, graph).empty
 
 
 def test_cli_reprocess(workdir):

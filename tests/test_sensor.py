@@ -16,14 +16,23 @@ from pathlib import Path
 
 import dagster as dg
 import pytest
+from prod_helpers import (
+    DEVICES,
+    QUIET,
+    SHM,
+    apply_partition_requests,
+    small_run,
+    temp_instance,
+    toy_definitions,
+    toy_stages,
+    write_small_archive,
+)
 
-import pipelines.definitions  # noqa: F401  (registers every stage, as the code location does)
-from pipelines.defs.sensors import RANGE_END, RANGE_START, TRIGGER_TAG, landing_sensor
+from assets_lib.sim.simulator import write_run
+from pipelines.defs.sensors import TRIGGER_TAG, landing_sensor
+from pipelines.jobs import RANGE_END, RANGE_START
 from pipelines.partitions import captures, devices
 from pipelines.resources import LabArchive
-from prod_helpers import (DEVICES, QUIET, SHM, apply_partition_requests, small_run, temp_instance, toy_definitions,
-                          toy_stages, write_small_archive)
-from assets_lib.sim.simulator import write_run
 
 warnings.filterwarnings("ignore")
 

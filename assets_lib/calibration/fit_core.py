@@ -402,7 +402,8 @@ def fit_linear(
     lev[idx] = h
     if k and dof > 1:
         rw_u = resid[idx] * w
-        s2_del = (chi2 - rw_u**2 / np.maximum(1 - h, 1e-12)) / (dof - 1)
+        # leave-one-out variance in the weighting of rw_u and h (after a flicker GLS, chi2 is the whitened one)
+        s2_del = (float(rw_u @ rw_u) - rw_u**2 / np.maximum(1 - h, 1e-12)) / (dof - 1)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = rw_u / np.sqrt(np.maximum(s2_del, 1e-300) * np.maximum(1 - h, 1e-12))
         t[h >= 1 - 1e-9] = np.nan

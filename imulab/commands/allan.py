@@ -5,6 +5,9 @@
   imulab allan log.csv --columns gx,gy --units deg/s --rate-hz 200 --taus dense
   imulab allan imu.parquet --plot allan.png --json allan.json
 Large parquet files (more rows than --stream-rows) are streamed: memory stays bounded at any length.
+The IMU stream of a contract run (a ``manifest.json`` beside it) is read in the manifest's units: counts times
+the LSB, converted to SI, at the manifest's sample rate. Integer columns of any other file are refused as raw
+counts unless --units says what they are.
 """
 
 from __future__ import annotations
@@ -19,7 +22,9 @@ import pandas as pd
 
 from assets_lib.noise import allan as al
 from assets_lib.noise import identification as ni
-from raw_schemas.units import ACCEL_UNITS_TO_MPS2, GYRO_UNITS_TO_RADPS
+from raw_schemas.errors import RawDataError
+from raw_schemas.manifest import COUNT_UNIT, load_manifest
+from raw_schemas.units import ACCEL_UNITS_TO_MPS2, GYRO_UNITS_TO_RADPS, family_of, si_factor
 
 TIME_COLUMNS = ("time_s", "time", "t", "timestamp", "t_s")
 STREAM_ROWS_DEFAULT = 20_000_000
@@ -36,6 +41,33 @@ def _unit_info(unit: str | None, column: str) -> tuple[float, str, str]:
         raise click.BadParameter(f"unknown unit {unit!r}; known: {', '.join(known)}", param_hint="--units")
     sensor = ni.sensor_of(column)
     return 1.0, {"gyro": "rad/s", "accel": "m/s^2"}.get(sensor, ""), sensor
+
+
+def _contract_channels(file: Path) -> tuple[dict[str, tuple[float, str, str]], str, float] | None:
+    """For the IMU stream of a contract run (``manifest.json`` beside ``file``): per IMU channel of the manifest,
+    (factor to SI = LSB x unit factor, SI unit, sensor), a one-line description, and the manifest's sample rate."""
+    mpath = file.parent / "manifest.json"
+    if not mpath.is_file():
+        return None
+    try:
+        manifest = load_manifest(mpath)
+    except RawDataError as e:
+        raise click.ClickException(f"{file} lies in a run folder whose manifest is not valid, so its units are "
+                                   f"unknown: {e}") from None
+    out, said = {}, []
+    for ch, spec in manifest.channels.items():
+        try:
+            fam = family_of(ch)
+        except KeyError:
+            continue
+        if fam not in ("gyro", "accel"):
+            continue
+        out[ch] = (spec.physical_per_raw() * si_factor(fam, spec.physical_unit),
+                   "rad/s" if fam == "gyro" else "m/s^2", fam)
+        said.append(f"{ch} {'counts x ' + format(spec.lsb, 'g') + ' ' if spec.unit == COUNT_UNIT else ''}"
+                    f"{spec.physical_unit}")
+    return out, f"contract run {manifest.device.id}/{manifest.run_id} ({mpath}): " + ", ".join(said), \
+        manifest.sample_rate_hz
 
 
 def _parse_taus(value: str):
@@ -61,6 +93,13 @@ def _rate_from_time(t: np.ndarray) -> float:
         click.echo("warning: irregular time stamps (gaps or jitter > 50%); the deviation assumes uniform sampling",
                    err=True)
     return 1.0 / med
+
+
+def _is_integer(dtype) -> bool:
+    """True for an integer column (pandas dtype or arrow type)."""
+    if hasattr(dtype, "to_pandas_dtype"):
+        dtype = dtype.to_pandas_dtype()
+    return pd.api.types.is_integer_dtype(dtype)
 
 
 def _fmt(v: float) -> str:
@@ -148,6 +187,14 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
         numeric = [c for c in df.columns if pd.api.types.is_numeric_dtype(df[c])]
         n_rows = len(df)
     time_col = next((c for c in TIME_COLUMNS if c in all_cols), None)
+    contract = _contract_channels(file)
+    if contract is not None:
+        if units:
+            raise click.BadParameter(f"{file} is the stream of a contract run: its units come from the manifest "
+                                     "beside it (drop --units)", param_hint="--units")
+        numeric = [c for c in numeric if c in contract[0]]
+        rate_hz = rate_hz or contract[2]
+        click.echo(contract[1], err=True)
     if columns:
         cols = [c.strip() for c in columns.split(",") if c.strip()]
         missing = [c for c in cols if c not in all_cols]
@@ -160,7 +207,19 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
     unit_list = [u.strip() for u in units.split(",")] if units else [None]
     if len(unit_list) not in (1, len(cols)):
         raise click.BadParameter("give one unit, or one per column", param_hint="--units")
-    info = {c: _unit_info(unit_list[0] if len(unit_list) == 1 else unit_list[k], c) for k, c in enumerate(cols)}
+    if contract is not None:
+        unknown = [c for c in cols if c not in contract[0]]
+        if unknown:
+            raise click.ClickException(f"{file}: column(s) {unknown} are not IMU channels of the run's manifest")
+        info = {c: contract[0][c] for c in cols}
+    else:
+        counts = [c for c in cols if c in numeric and _is_integer(schema.field(c).type if is_parquet else df[c].dtype)]
+        if counts and not units:
+            raise click.ClickException(
+                f"{file}: column(s) {counts} hold integers, i.e. raw counts, and there is no manifest.json beside "
+                "the file to give their LSB and unit. Run imulab allan on the stream inside its contract run "
+                "folder, or pass --units if the values are already in a physical unit.")
+        info = {c: _unit_info(unit_list[0] if len(unit_list) == 1 else unit_list[k], c) for k, c in enumerate(cols)}
 
     if rate_hz is None:
         if time_col is None:

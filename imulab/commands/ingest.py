@@ -20,7 +20,7 @@ def command(run_dirs, out_dir):
     Bad input stops with an error naming the file, the row/column or field, and what was expected.
     The raw folders are only read.
     """
-    from pipelines.storage import write_parquet_deterministic
+    from assets_lib.store import write_parquet_deterministic
     from raw_schemas.errors import RawDataError
     from raw_schemas.readers import discover_runs, ingest_run, is_complete
 

@@ -39,11 +39,14 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
         raise click.ClickException(f"no archive at {landing}")
     if not verbose:
         warnings.filterwarnings("ignore")
+    from assets_lib.stages.plan import outcome
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import VersionedStore
     from pipelines import reprocess
     from pipelines.definitions import build_definitions
     from pipelines.launch import open_instance, register_landed_runs
+    from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
-    from pipelines.storage import VersionedStore
 
     archive = LabArchive(landing_dir=str(landing))
     vstore = VersionedStore(store)
@@ -53,7 +56,7 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
         new = register_landed_runs(instance, archive)
         if new:
             click.echo(f"registered {len(new)} newly landed runs")
-        plan = reprocess.plan_for_instance(instance, vstore, archive, use_ledger=not retry_no_output)
+        plan = reprocess.plan_for_instance(instance, STAGES, vstore, archive.archive, use_ledger=not retry_no_output)
         click.echo(f"checked {plan.up_to_date + len(plan.stale)} partitions in {time.time() - t0:.1f} s: "
                    f"{len(plan.stale)} stale, {plan.up_to_date} up to date, {plan.not_applicable} not applicable, "
                    f"{plan.waiting} waiting for inputs, {len(plan.no_output)} without output at this version")
@@ -66,7 +69,7 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
         if plan.empty:
             click.echo("nothing to reprocess")
             return
-        cap, dev = reprocess.registered_keys(instance)
+        cap, dev = registered_keys(instance)
         runs = reprocess.planned_runs(plan, cap, dev)
         click.echo(f"{len(runs)} batched run(s): " + "; ".join(
             f"{r.job} [{r.first}..{r.last}] {','.join(r.stages)}" if r.first else f"{r.job} {','.join(r.stages)}"
@@ -78,7 +81,7 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
         summary = reprocess.run_plan(defs, instance, plan, vstore, quiet=not verbose)
     for job, run_id, ok in summary.runs:
         click.echo(f"  {'ok  ' if ok else 'FAIL'} {job} run {run_id}")
-    done = reprocess.outcome(vstore, plan)
+    done = outcome(vstore, plan)
     rewritten = [s for s, o in done if o == "rewritten"]
     click.echo(f"rewrote {len(rewritten)} partition(s) in {time.time() - t1:.1f} s "
                f"({len(done) - len(rewritten)} produced no output):")

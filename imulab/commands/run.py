@@ -24,6 +24,7 @@ def command(landing, store, data_dir, dagster_home, verbose):
     Re-running reuses every unchanged output (nothing is rewritten).
     """
     data = Path(data_dir)
+    _hold_workspace(data, store, dagster_home)  # released when the command ends
     if landing is None:
         landing = data / "landing"
         if not landing.is_dir() or not any(p for p in landing.iterdir() if not p.name.startswith("_")):
@@ -38,12 +39,16 @@ def command(landing, store, data_dir, dagster_home, verbose):
     if not verbose:
         warnings.filterwarnings("ignore")
     from pipelines.definitions import build_definitions
+    from pipelines.instance import fail_abandoned_runs, note_archive
     from pipelines.launch import materialize_archive, open_instance, register_landed_runs
     from pipelines.resources import LabArchive
 
     defs = build_definitions(str(landing), str(store))
     t0 = time.time()
+    note_archive(store, landing)  # lets `imulab verify` find the archive from the store
     with open_instance(home) as instance:
+        for rid in fail_abandoned_runs(instance):
+            click.echo(f"marked Dagster run {rid} failed: the process running it was killed before it finished")
         new = register_landed_runs(instance, LabArchive(landing_dir=str(landing)))
         n_all = len(instance.get_dynamic_partitions("captures"))
         click.echo(f"{n_all} captured runs registered ({len(new)} new) from {landing}")
@@ -58,3 +63,15 @@ def command(landing, store, data_dir, dagster_home, verbose):
                f"IMULAB_STORE={store} dagster dev -w workspace.yaml)")
     if not summary.success:
         sys.exit(1)
+
+
+def _hold_workspace(data: Path, store, dagster_home):
+    """One run at a time per Dagster home and store (pipelines/instance.py): a second one waits, then refuses."""
+    from pipelines.instance import RunLockedError, acquire_run_lock
+
+    home = Path(dagster_home or os.environ.get("DAGSTER_HOME") or data / "dagster_home")
+    try:
+        click.get_current_context().call_on_close(acquire_run_lock(home, Path(store or data / "store"),
+                                                                   echo=click.echo).close)
+    except RunLockedError as e:
+        raise click.ClickException(str(e)) from None

@@ -1,1 +1,2 @@
-"""Dagster definitions by stage: ``ingest``, ``calibration``, ``noise``, ``fleet``; sensors and schedules."""
+"""Dagster-only definitions per concern: the checks of each stage (``calibration``, ``noise``, ``records``,
+``fleet``), the ``sensors`` and the reprocessing ``schedules``; ``pipelines.definitions`` lists them."""

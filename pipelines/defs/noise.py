@@ -1,53 +1,10 @@
-"""Stage ``noise``: Allan deviation with confidence intervals and IEEE 952 noise identification of every long
-static record, with a log-log plot per sensor and a check that the fitted model matches the curve."""
+"""Check of the noise stage (``assets_lib.stages.noise``): the fitted IEEE 952 model matches the Allan curve."""
 
 import dagster as dg
-import numpy as np
-import pandas as pd
 
-from assets_lib.noise.allan import allan_deviations
-from assets_lib.noise.identification import fit_all, noise_table, plot_allan
+from assets_lib.stages.noise import MODEL_INSIDE_CI_MIN
 from pipelines.partitions import captures
 from pipelines.resources import ParquetStore
-from pipelines.stage import StageInputs, StageOutput, stage
-from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
-
-#: confidence level of the stored Allan-deviation intervals
-CI_LEVEL = 0.95
-#: the fitted model must lie inside the per-tau 95 % interval at this share of the taus
-MODEL_INSIDE_CI_MIN = 0.8
-
-
-@stage("allan_deviation", level="capture", group="noise", code_version="1", upstream=["ingested_run"],
-       applies_to=("static",))
-def allan_deviation(key: str, inputs: StageInputs) -> StageOutput:
-    """Overlapping Allan deviation (seed 002 eq. 4) per channel with chi-square intervals, and the IEEE 952
-    Annex C fit (Q, N, B, K, R with intervals; unsupported terms as upper bounds) beside the slope readings."""
-    imu = inputs.table("ingested_run", "imu")
-    rate_hz = float(inputs.meta("ingested_run").get("sample_rate_hz") or 1.0 / np.median(np.diff(imu.time_s)))
-    channels = list(GYRO_COLUMNS + ACCEL_COLUMNS)
-    results = allan_deviations(imu[channels], rate_hz, taus="octave", channels=channels, ci_level=CI_LEVEL)
-    fits = fit_all(results)
-    allan = pd.concat([r.to_frame() for r in results.values()], ignore_index=True).assign(ci_level=CI_LEVEL)
-    noise = noise_table(fits)
-    plots = {
-        "allan_gyro": plot_allan({c: results[c] for c in GYRO_COLUMNS}, {c: fits[c] for c in GYRO_COLUMNS}, title=f"{key}: gyro"),
-        "allan_accel": plot_allan({c: results[c] for c in ACCEL_COLUMNS}, {c: fits[c] for c in ACCEL_COLUMNS}, title=f"{key}: accel"),
-    }
-    inside = {c: _model_inside_ci(results[c], fits[c]) for c in channels}
-    summary = {}
-    for _, r in noise[(noise.method == "fit") & noise.parameter.isin(["N", "B"])].iterrows():
-        summary[f"{r.channel}_{r.parameter}_{r.unit_lab}"] = float(r.value_lab)
-    return StageOutput(tables={"allan": allan, "noise": noise}, meta={"model_inside_ci": inside, "rate_hz": rate_hz},
-                       summary=summary, plots=plots)
-
-
-def _model_inside_ci(res, fit) -> float:
-    """Share of the fitted taus at which the model deviation lies inside the measured interval."""
-    model = np.sqrt(sum(fit.term_avar(res.tau_s).values()))
-    ok = (model >= res.ci_lo) & (model <= res.ci_hi)
-    used = np.isin(res.tau_s, fit.tau_s)
-    return float(ok[used].mean()) if used.any() else float("nan")
 
 
 @dg.asset_check(asset="allan_deviation", name="noise_model_matches_curve", partitions_def=captures,
@@ -66,5 +23,4 @@ def noise_model_matches_curve(context: dg.AssetCheckExecutionContext, store: Par
                                metadata={"inside_ci": dg.MetadataValue.json(shares), "failures": "\n".join(bad) or "none"})
 
 
-ASSETS = [allan_deviation]
 CHECKS = [noise_model_matches_curve]

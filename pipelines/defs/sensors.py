@@ -18,54 +18,37 @@ Follow-up sensors. When a ``calibrate_captures`` run succeeds, ``captures_to_dev
 ``calibrate_devices`` over the devices of that run's partitions; when a ``calibrate_devices`` run succeeds,
 ``devices_to_fleet`` requests ``fleet_summary``. They follow ``RUN_SUCCESS`` events in the event log (the
 mechanism of ``@run_status_sensor``; the cursor is the event's storage id, so a run that started early and
-finished late is not skipped) and their run keys derive from the triggering run id. They are built only when the
-jobs they launch exist, i.e. when stages of those levels are registered: ``SENSORS`` is evaluated when the code
-location collects it (``pipelines.definitions``), after every stage module has been imported.
+finished late is not skipped) and their run keys derive from the triggering run id. ``sensors(graph)`` builds
+them for the jobs the stage graph has.
 """
-
 
 import hashlib
 import json
 
 import dagster as dg
 
-from pipelines.partitions import captures, devices, split_capture_key
+from assets_lib.stages.engine import StageGraph
+from assets_lib.store import split_capture_key
+from pipelines.jobs import (
+    CAPTURES_JOB,
+    DEVICES_JOB,
+    FLEET_JOB,
+    PARTITION_TAG,
+    RANGE_END,
+    RANGE_START,
+    contiguous_blocks,
+    range_tags,
+)
+from pipelines.partitions import captures, devices, new_partition_requests
 from pipelines.resources import LabArchive
-from pipelines.stage import STAGES
 
-RANGE_START = "dagster/asset_partition_range_start"
-RANGE_END = "dagster/asset_partition_range_end"
-PARTITION_TAG = "dagster/partition"
 TRIGGER_TAG = "imulab/triggered_by_run"
-
-CAPTURES_JOB = "calibrate_captures"
-DEVICES_JOB = "calibrate_devices"
-FLEET_JOB = "fleet_summary"
-JOB_LEVEL = {CAPTURES_JOB: "capture", DEVICES_JOB: "device", FLEET_JOB: "fleet"}
-
-
-def range_tags(first: str, last: str) -> dict[str, str]:
-    return {RANGE_START: first, RANGE_END: last}
+#: the root stage whose materializations tell which registered captures were ever computed
+ROOT_STAGES = ("ingested_run",)
 
 
 def landing_digest(keys) -> str:
     return hashlib.sha256("\n".join(sorted(keys)).encode()).hexdigest()[:16]
-
-
-def contiguous_blocks(ordered, wanted) -> list[tuple[str, str]]:
-    """(first, last) of each maximal run of ``wanted`` keys in ``ordered`` (a partition range is contiguous)."""
-    wanted = set(wanted)
-    blocks, start, prev = [], None, None
-    for k in ordered:
-        if k in wanted:
-            start = k if start is None else start
-            prev = k
-        elif start is not None:
-            blocks.append((start, prev))
-            start = None
-    if start is not None:
-        blocks.append((start, prev))
-    return blocks
 
 
 def _parse_cursor(cursor: str | None) -> dict:
@@ -78,21 +61,13 @@ def _parse_cursor(cursor: str | None) -> dict:
     return value if isinstance(value, dict) else {}
 
 
-def root_capture_stages() -> list[str]:
-    """Capture stages computed straight from the raw run folder (``ingested_run``)."""
-    return [s.name for s in STAGES.values() if s.level == "capture" and not s.upstream]
-
-
 def unrequested_partitions(instance: dg.DagsterInstance, registered: list[str], cursor: dict) -> list[str]:
     """Registered capture partitions no landing run request has covered yet."""
     n, last = cursor.get("requested"), cursor.get("last")
     if isinstance(n, int) and 0 <= n <= len(registered) and (n == 0 or registered[n - 1] == last):
         return registered[n:]
-    roots = root_capture_stages()
-    if not roots:
-        return []
     done = None
-    for name in roots:
+    for name in ROOT_STAGES:
         got = set(instance.get_materialized_partitions(dg.AssetKey(name)))
         done = got if done is None else done & got
     return [k for k in registered if k not in done]
@@ -104,20 +79,13 @@ def landing_sensor(context: dg.SensorEvaluationContext, archive: LabArchive):
     complete = archive.complete_runs()
     cursor = _parse_cursor(context.cursor)
     registered = list(context.instance.get_dynamic_partitions(captures.name))
-    known = set(registered)
-    new = sorted(k for k in complete if k not in known)
+    new, requests = new_partition_requests(context.instance, complete)
     pending = unrequested_partitions(context.instance, registered, cursor) + new
-    order = registered + new  # the partition order once the add request below is applied
+    order = registered + new  # the partition order once the add requests are applied
     next_cursor = json.dumps({"requested": len(order), "last": order[-1] if order else None,
                               "complete_runs": len(complete), "digest": landing_digest(complete)})
     if not pending:
         return dg.SensorResult(skip_reason=f"no new completed runs ({len(complete)} known)", cursor=next_cursor)
-    requests = []
-    if new:
-        requests.append(captures.build_add_request(new))
-        new_devices = sorted({split_capture_key(k)[0] for k in new} - set(context.instance.get_dynamic_partitions(devices.name)))
-        if new_devices:
-            requests.append(devices.build_add_request(new_devices))
     pending_set = set(pending)
     run_requests = []
     for first, last in contiguous_blocks(order, pending_set):
@@ -194,14 +162,11 @@ def build_follow_up_sensor(name: str, monitored: list[str], request_job: str, de
     return _sensor
 
 
-def _levels() -> set[str]:
-    return {s.level for s in STAGES.values()}
-
-
-def follow_up_sensors() -> list:
-    """Follow-up sensors for the jobs that exist (a job exists when stages of its level are registered)."""
-    levels = _levels()
-    out = []
+def sensors(graph: StageGraph) -> list:
+    """The landing sensor and the follow-up sensors for the jobs ``graph`` has (a job exists when stages of its
+    level exist)."""
+    levels = graph.levels
+    out = [landing_sensor]
     if "capture" in levels and "device" in levels:
         out.append(build_follow_up_sensor(
             "captures_to_devices", [CAPTURES_JOB], DEVICES_JOB,
@@ -214,10 +179,3 @@ def follow_up_sensors() -> list:
                 "devices_to_fleet", monitored, FLEET_JOB,
                 f"When a {'/'.join(monitored)} run succeeds, refresh the fleet summary."))
     return out
-
-
-def __getattr__(name: str):
-    # Evaluated when pipelines.definitions collects the module, after every stage module is imported.
-    if name == "SENSORS":
-        return [landing_sensor, *follow_up_sensors()]
-    raise AttributeError(name)

@@ -1,15 +1,15 @@
-"""Stage ``ingest``: validate each captured run against the raw-log contract, store canonical SI parquet."""
+"""Stage ``ingested_run``: validate each captured run against the raw-log contract, store canonical SI parquet."""
 
 from __future__ import annotations
 
 import json
 
-from pipelines.stage import StageInputs, StageOutput, stage
+from assets_lib.stages.spec import StageOutput, stage
 from raw_schemas.readers import ingest_run
 
 
 @stage("ingested_run", level="capture", group="ingest", code_version="2")
-def ingested_run(key: str, inputs: StageInputs) -> StageOutput:
+def ingested_run(key: str, inputs) -> StageOutput:
     """Raw run folder -> canonical IMU (and turntable) parquet, manifest and sha256 of every raw file."""
     run = ingest_run(inputs.run_dir())
     m = run.manifest
@@ -34,4 +34,3 @@ def ingested_run(key: str, inputs: StageInputs) -> StageOutput:
         files={"manifest.json": (json.dumps(json.loads(m.model_dump_json()), indent=1, sort_keys=True) + "\n").encode()},
         summary={"test_kind": m.test_kind, "n_samples": len(run.imu), "duration_s": float(run.imu.time_s.iloc[-1])},
     )
-ASSETS = [ingested_run]

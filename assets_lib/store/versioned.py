@@ -55,7 +55,7 @@ def write_parquet_deterministic(df: pd.DataFrame, path: Path) -> None:
 
 @dataclass(frozen=True)
 class VersionedStore:
-    """Plain-Python store behind the ``ParquetStore`` resource (also used by the CLI)."""
+    """The store every stage reads and writes (the Dagster ``ParquetStore`` resource wraps it; the CLI uses it)."""
 
     root: Path
 

@@ -1,0 +1,122 @@
+"""Stages ``plateaus``, ``gyro_rate_fit``, ``accel_multiposition_fit``: plateau segmentation with outlier rejection,
+the gyro rate fit, the accelerometer multi-position fit (with static gyro biases), per captured run; and the
+figures their quality gates judge (``plateau_gate_figure``, ``reduced_chi2``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from assets_lib.calibration.fit_report import (
+    plot_multiposition_residuals_png,
+    plot_rate_residuals_png,
+)
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
+from assets_lib.calibration.rate_fit import fit_gyro_rate
+from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
+from assets_lib.records.validity import CHI2_BAND  # one band for the gate and the record's status
+from assets_lib.stages.spec import StageOutput, stage
+from raw_schemas.manifest import Manifest
+
+CALIBRATION_KINDS = ("rate", "multiposition", "tumble")
+MIN_PLATEAU_FRACTION = 0.8  # a run whose usable plateaus fall below this share of the plan fails the gate
+
+
+def load_manifest(inputs) -> Manifest:
+    return Manifest.model_validate_json(inputs.file("ingested_run", "manifest.json"))
+
+
+@stage("plateaus", level="capture", group="calibration", code_version="1", upstream=["ingested_run"],
+       applies_to=CALIBRATION_KINDS)
+def plateaus(key: str, inputs) -> StageOutput:
+    """Plateau table per run: clock alignment to the table log (or detection from the data), settle trimming,
+    whole revolutions, polynomial-residual outlier rejection, means with correlated-noise standard errors."""
+    manifest = load_manifest(inputs)
+    imu = inputs.table("ingested_run", "imu")
+    table = inputs.table("ingested_run", "table") if inputs.has_table("ingested_run", "table") else None
+    res = segment_run(manifest, imu, table)
+    p = res.plateaus
+    al = res.alignment
+    rejected = p[["step_index", "n_samples", "n_rejected", "rejected_fraction", "flagged", "flag_reason"]]
+    meta = {
+        "method": res.method,
+        "clock_offset_s": None if al is None else float(al.offset_s),
+        "unmatched_steps": list(map(int, res.unmatched_steps)),
+        "warnings": list(res.warnings),
+        "outliers_per_plateau": rejected.to_dict(orient="records"),
+    }
+    return StageOutput(
+        tables={"plateaus": p},
+        meta=meta,
+        summary={
+            "n_plateaus": len(p),
+            "n_flagged": int(p["flagged"].sum()),
+            "rejected_fraction_max": float(p["rejected_fraction"].max()) if len(p) else 0.0,
+            "segmentation": res.method,
+        },
+        plots={"segmentation": plot_segmentation_png(imu, res, title=key)},
+    )
+
+
+@stage("gyro_rate_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
+       applies_to=("rate",))
+def gyro_rate_fit(key: str, inputs) -> StageOutput:
+    """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus (seed 003 eq. 3,
+    seed 000 eq. 6-13); saturated or wild plateaus excluded automatically and reported."""
+    fit = fit_gyro_rate(inputs.table("plateaus", "plateaus"))
+    coef = fit.coefficient_table()
+    resid = fit.residual_table()
+    return StageOutput(
+        tables={"coefficients": coef, "residuals": resid},
+        meta={"excluded": _excluded(resid)},
+        summary=_coef_summary(coef, "gyro", ("scale_factor",)),
+        plots={"residual_vs_rate": plot_rate_residuals_png(resid, title=f"{key}: gyro rate-fit residuals")},
+    )
+
+
+@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
+       applies_to=("multiposition", "tumble"))
+def accel_multiposition_fit(key: str, inputs) -> StageOutput:
+    """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule (seed 000 eq.
+    21-22, seed 003), unobservable terms reported as such; gyro biases from the static positions (eq. 17-20)."""
+    p = inputs.table("plateaus", "plateaus")
+    acc = fit_accel_multiposition(p)
+    gyr = fit_gyro_static(p)
+    coef = pd.concat([acc.coefficient_table(), gyr.coefficient_table()], ignore_index=True)
+    resid = pd.concat([acc.residual_table(), gyr.residual_table()], ignore_index=True)
+    return StageOutput(
+        tables={"coefficients": coef, "residuals": resid},
+        meta={"excluded": _excluded(resid)},
+        summary=_coef_summary(coef, "accel", ("bias",)),
+        plots={"position_residuals": plot_multiposition_residuals_png(resid, title=f"{key}: multi-position residuals")},
+    )
+
+
+def _excluded(resid: pd.DataFrame) -> list[dict]:
+    if "excluded" not in resid:
+        return []
+    cols = [c for c in ("sensor", "axis", "step_index", "reason") if c in resid]
+    return resid.loc[resid["excluded"].astype(bool), cols].to_dict(orient="records")
+
+
+def _coef_summary(coef: pd.DataFrame, sensor: str, names) -> dict:
+    out = {}
+    for _, r in coef[(coef.sensor == sensor) & coef.coefficient.isin(names)].iterrows():
+        out[f"{r.sensor}_{r.axis}_{r.coefficient}_{r.unit_lab}"] = float(r.value_lab)
+    return out
+
+
+
+def usable_plateau_fraction(p: pd.DataFrame) -> float:
+    """Share of the plan's steps that gave an unflagged plateau."""
+    return float((~p["flagged"].astype(bool)).mean()) if len(p) else 0.0
+
+
+def reduced_chi2(resid: pd.DataFrame) -> float | None:
+    """Mean square of the standardized residuals of the plateaus used by a fit (None without any)."""
+    z = resid.loc[~resid["excluded"].astype(bool), "std_residual"].to_numpy(dtype=float)
+    z = z[np.isfinite(z)]
+    return float(np.mean(z**2)) if z.size else None

@@ -1,0 +1,48 @@
+"""Stage ``allan_deviation``: Allan deviation with confidence intervals and IEEE 952 noise identification of every
+long static record, with a log-log plot per sensor and the share of taus where the fitted model matches the curve."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from assets_lib.noise.allan import allan_deviations
+from assets_lib.noise.identification import fit_all, noise_table, plot_allan
+from assets_lib.records.validity import MODEL_INSIDE_CI_MIN  # one threshold for the gate and the record's status
+from assets_lib.stages.spec import StageOutput, stage
+from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
+
+#: confidence level of the stored Allan-deviation intervals
+CI_LEVEL = 0.95
+
+
+@stage("allan_deviation", level="capture", group="noise", code_version="1", upstream=["ingested_run"],
+       applies_to=("static",))
+def allan_deviation(key: str, inputs) -> StageOutput:
+    """Overlapping Allan deviation (seed 002 eq. 4) per channel with chi-square intervals, and the IEEE 952
+    Annex C fit (Q, N, B, K, R with intervals; unsupported terms as upper bounds) beside the slope readings."""
+    imu = inputs.table("ingested_run", "imu")
+    rate_hz = float(inputs.meta("ingested_run").get("sample_rate_hz") or 1.0 / np.median(np.diff(imu.time_s)))
+    channels = list(GYRO_COLUMNS + ACCEL_COLUMNS)
+    results = allan_deviations(imu[channels], rate_hz, taus="octave", channels=channels, ci_level=CI_LEVEL)
+    fits = fit_all(results)
+    allan = pd.concat([r.to_frame() for r in results.values()], ignore_index=True).assign(ci_level=CI_LEVEL)
+    noise = noise_table(fits)
+    plots = {
+        "allan_gyro": plot_allan({c: results[c] for c in GYRO_COLUMNS}, {c: fits[c] for c in GYRO_COLUMNS}, title=f"{key}: gyro"),
+        "allan_accel": plot_allan({c: results[c] for c in ACCEL_COLUMNS}, {c: fits[c] for c in ACCEL_COLUMNS}, title=f"{key}: accel"),
+    }
+    inside = {c: _model_inside_ci(results[c], fits[c]) for c in channels}
+    summary = {}
+    for _, r in noise[(noise.method == "fit") & noise.parameter.isin(["N", "B"])].iterrows():
+        summary[f"{r.channel}_{r.parameter}_{r.unit_lab}"] = float(r.value_lab)
+    return StageOutput(tables={"allan": allan, "noise": noise}, meta={"model_inside_ci": inside, "rate_hz": rate_hz},
+                       summary=summary, plots=plots)
+
+
+def _model_inside_ci(res, fit) -> float:
+    """Share of the fitted taus at which the model deviation lies inside the measured interval."""
+    model = np.sqrt(sum(fit.term_avar(res.tau_s).values()))
+    ok = (model >= res.ci_lo) & (model <= res.ci_hi)
+    used = np.isin(res.tau_s, fit.tau_s)
+    return float(ok[used].mean()) if used.any() else float("nan")

@@ -1,0 +1,16 @@
+"""The stages of imulab, in dependency order: the one list the Dagster code location, ``imulab verify`` and the
+reprocessing planner walk. A new stage is a module in this package plus one line here."""
+
+from assets_lib.stages import calibration, fleet, ingest, noise, records, repeatability
+from assets_lib.stages.engine import StageGraph
+
+STAGES = StageGraph([
+    ingest.ingested_run,
+    calibration.plateaus,
+    calibration.gyro_rate_fit,
+    calibration.accel_multiposition_fit,
+    noise.allan_deviation,
+    repeatability.repeatability,
+    records.calibration_record,
+    fleet.fleet_drift_stage,
+])

@@ -1,0 +1,84 @@
+"""A stage's code version covers exactly the sources it runs: its module and the project modules it imports
+(``assets_lib.stages.sources``). Adding an unrelated module leaves every version (and so every stored output)
+valid; changing a module a stage imports makes that stage, and only the stages that run it, stale."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from assets_lib.stages.registry import STAGES
+from assets_lib.stages.sources import module_closure, source_digest
+
+REPO = Path(__file__).resolve().parents[1]
+IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc")
+
+
+def _copy_sources(dst: Path, packages=("assets_lib", "raw_schemas")) -> Path:
+    for pkg in packages:
+        shutil.copytree(REPO / pkg, dst / pkg, ignore=IGNORE)
+    return dst
+
+
+def _digests(root: Path) -> dict[str, str]:
+    return {s.name: source_digest(s.compute.__module__, root) for s in STAGES}
+
+
+def test_closure_is_what_a_stage_imports():
+    rate = module_closure("assets_lib.stages.calibration")
+    assert "assets_lib.calibration.rate_fit" in rate and "assets_lib.calibration.segmentation" in rate
+    assert "assets_lib.fleet.drift" not in rate and "assets_lib.noise.allan" not in rate
+    assert "assets_lib.noise.allan" in module_closure("assets_lib.stages.noise")
+    assert not any(m.startswith(("pipelines", "imulab")) for s in STAGES for m in module_closure(s.compute.__module__))
+
+
+def test_new_module_changes_no_version_and_an_edit_changes_only_its_stages(tmp_path):
+    root = _copy_sources(tmp_path)
+    before = _digests(root)
+    assert before == {s.name: source_digest(s.compute.__module__) for s in STAGES}  # the copy digests like the repo
+    (root / "assets_lib" / "sim" / "new_effect.py").write_text("")
+    (root / "assets_lib" / "simreal").mkdir()
+    (root / "assets_lib" / "simreal" / "__init__.py").write_text('"""A new package nobody imports yet."""\n')
+    assert _digests(root) == before
+
+    with open(root / "assets_lib" / "calibration" / "rate_fit.py", "a") as f:
+        f.write("# an edit\n")
+    after = _digests(root)
+    changed = {n for n in before if before[n] != after[n]}
+    runs_it = {s.name for s in STAGES if "assets_lib.calibration.rate_fit" in module_closure(s.compute.__module__)}
+    assert changed == runs_it and "gyro_rate_fit" in changed and "allan_deviation" not in changed
+    assert "ingested_run" not in changed and "fleet_drift" not in changed
+
+
+@pytest.mark.slow
+def test_empty_module_leaves_reprocess_with_nothing_to_do(tmp_path):
+    """The real commands on a copy of the code: ``imulab run``, add an empty module, ``imulab reprocess --dry-run``."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from prod_helpers import write_realistic_archive
+
+    code = _copy_sources(tmp_path / "code", ("assets_lib", "raw_schemas", "pipelines", "imulab"))
+    landing, data = tmp_path / "landing", tmp_path / "data"
+    write_realistic_archive(landing)
+    env = {**os.environ, "PYTHONPATH": str(code), "PYTHONWARNINGS": "ignore"}
+
+    def cli(*args):
+        res = subprocess.run([sys.executable, "-m", "imulab.cli", *args, "--archive", str(landing), "--data-dir", str(data)],
+                             env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
+        return res.returncode, res.stdout + res.stderr
+
+    rc, out = cli("run")
+    assert rc == 0, out
+    (code / "assets_lib" / "sim" / "new_effect.py").write_text("")
+    rc, out = cli("reprocess", "--dry-run")
+    assert rc == 0 and "nothing to reprocess" in out and " 0 stale" in out, out
+    with open(code / "assets_lib" / "calibration" / "rate_fit.py", "a") as f:  # the check can fail
+        f.write("# an edit\n")
+    rc, out = cli("reprocess", "--dry-run")
+    # the stages of the module that imports rate_fit (assets_lib/stages/calibration.py) and their downstreams
+    assert rc == 0 and "gyro_rate_fit: 1 stale" in out and "plateaus: 2 stale" in out, out
+    assert "ingested_run:" not in out and "code version 2+src" not in out, out
