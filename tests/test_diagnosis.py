@@ -119,3 +119,27 @@ def test_null_device_selects_nothing(null_archive):
     sel = at.select(d)
     assert sel.accepted == []
     assert max(s.delta_lpd for s in sel.first_step) < at.GATE
+
+
+@pytest.mark.slow
+def test_sim_to_real_stage_through_the_engine(null_archive, tmp_path):
+    """The ``sim_to_real`` stage computed by the stage engine from stored ``ingested_run`` outputs: report file,
+    tables, verdict in the metadata the asset check reads."""
+    from assets_lib.stages.engine import compute_partition
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive, VersionedStore
+
+    store = VersionedStore(tmp_path / "store")
+    archive = LandingArchive(null_archive)
+    for key in archive.complete_runs():
+        o = compute_partition(STAGES, STAGES["ingested_run"], key, store, archive)
+        assert o.done, o.reason
+    o = compute_partition(STAGES, STAGES["sim_to_real"], "NULL-T", store, archive)
+    assert o.status == "written", o.reason
+    meta = store.read_meta("sim_to_real", "NULL-T")
+    assert meta["verdict"] == "no_gap"
+    d = store.version_dir("sim_to_real", "NULL-T", o.version)
+    rep = json.loads((d / "NULL-T.json").read_text())
+    jsonschema.validate(rep, SCHEMA)
+    assert (d / "NULL-T.html").is_file() and (d / "NULL-T.twin.json").is_file()
+    assert list(store.read("sim_to_real", "NULL-T", "where").columns)[:3] == ["view", "run_id", "channel"]

@@ -98,10 +98,17 @@ def block_a_features(p: pd.DataFrame, inp: RunInputs) -> dict:
     f = p[[f"f_ref_{a}_mps2" for a in AX]].to_numpy(float)
     tmid = 0.5 * (p["t_start_s"].to_numpy(float) + p["t_end_s"].to_numpy(float))
     ton0 = float(inp.t_on_s[0] - inp.t_s[0])
+    lags = {}
+    i0 = np.searchsorted(inp.t_s, p["t_start_s"].to_numpy(float))
+    i1 = np.maximum(np.searchsorted(inp.t_s, p["t_end_s"].to_numpy(float), side="right"), i0 + 1)
+    for lag in fx.THERMAL_LAGS_S:
+        if lag:
+            c = np.concatenate([[0.0], np.cumsum(fx.lagged_temperature(inp.t_s, inp.temperature_degc, lag))])
+            lags[float(lag)] = (c[i1] - c[i0]) / (i1 - i0)
     return dict(n=len(p), omega=w, omega_motion=w - we, force=f, temp=p["temperature_degc_mean"].to_numpy(float),
                 t_on=tmid + ton0, t_run=tmid,
                 is_rate=(p["kind"].to_numpy() == "rate") & (np.abs(p["commanded_rate_radps"].to_numpy(float)) > 0),
-                step=p["step_index"].to_numpy(float))
+                step=p["step_index"].to_numpy(float), temp_lag=lags)
 
 
 def _project(yw, Xw, Nw):
@@ -148,6 +155,7 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                     continue
                 idx = np.flatnonzero(ok)
                 sub = {k: (v[idx] if isinstance(v, np.ndarray) else v) for k, v in feat.items()}
+                sub["temp_lag"] = {k: v[idx] for k, v in feat["temp_lag"].items()}
                 sub["n"] = idx.size
                 X = np.zeros((idx.size, P))
                 for ai, at in enumerate(ATOMS):
@@ -222,9 +230,14 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                 gram[ri, bi] = X.T @ X
                 xty[ri, bi] = X.T @ Y
                 yty[ri, bi] = float(Y @ Y)
-        dg = np.diagonal(gram[ri].sum(axis=0))
-        for ai, at in enumerate(ATOMS):
-            carries[ri, ai] = bool(np.any(dg[list(at.cols)] > 1e-12))
+    # a run carries a signature when it holds >= 1 % of the signature's total (whitened) energy: the earth-rate
+    # component of a static run "carries" omega x T only numerically (measured: such folds gained exactly 0 and
+    # blocked the all-but-one fold rule for a hidden temperature scale factor)
+    dg = np.diagonal(gram.sum(axis=1), axis1=1, axis2=2)  # (n_runs, P)
+    tot = dg.sum(axis=0)
+    share = np.where(tot > 0, dg / np.where(tot > 0, tot, 1.0), 0.0)
+    for ai, at in enumerate(ATOMS):
+        carries[:, ai] = np.any(share[:, list(at.cols)] >= 0.01, axis=1)
     df = pd.DataFrame(rows, columns=["block", "run_id", "channel", "step_index", "y"])
     return Design(tuple(r.run_id for r in runs), gram, xty, yty, carries, df, extra)
 

@@ -15,8 +15,8 @@ Families and their folds (issue 12: folds are the runs that carry the signature)
 =========================== ====== ==================================================== =========================
 family                      block  signature (channel j)                                folds
 =========================== ====== ==================================================== =========================
-temperature_bias            A      T - T0                                               runs
-temperature_scale_factor    A      x_j (T - T0), x = omega (gyro) or f (accel)          runs
+temperature_bias            A      T_lag - T0 (T lagged by 0..400 s, profiled)          runs
+temperature_scale_factor    A      x_j (T_lag - T0), x = omega (gyro) or f (accel)      runs
 warmup_bias                 A      exp(-t_on / tau), tau profiled in 120..2400 s        runs
 bias_ramp                   A      t_on (time since power-on)                           runs
 g_sensitivity               A      f_x^2, f_y^2, f_z^2 (g-squared part; linear G is     runs
@@ -43,6 +43,8 @@ import numpy as np
 
 T0_DEGC = 25.0
 WARMUP_TAUS_S = (120.0, 300.0, 900.0, 2400.0)
+#: thermal lag between the sensor die and the logged thermometer (first-order), profiled like the warm-up tau
+THERMAL_LAGS_S = (0.0, 60.0, 150.0, 400.0)
 GYRO = (0, 1, 2)
 ACCEL = (3, 4, 5)
 CHANNEL_NAMES = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
@@ -69,8 +71,8 @@ class Family:
 
 
 FAMILIES: dict[str, Family] = {f.name: f for f in (
-    Family("temperature_bias", "rad/s/K | m/s^2/K", GYRO + ACCEL, "A", 1),
-    Family("temperature_scale_factor", "1/K", GYRO + ACCEL, "A", 1),
+    Family("temperature_bias", "rad/s/K | m/s^2/K", GYRO + ACCEL, "A", 1, THERMAL_LAGS_S),
+    Family("temperature_scale_factor", "1/K", GYRO + ACCEL, "A", 1, THERMAL_LAGS_S),
     Family("warmup_bias", "rad/s | m/s^2", GYRO + ACCEL, "A", 1, WARMUP_TAUS_S),
     Family("bias_ramp", "rad/s^2 | m/s^3", GYRO + ACCEL, "A", 1),
     Family("g_sensitivity", "rad/s per (m/s^2)^2", GYRO, "A", 3),
@@ -100,6 +102,8 @@ def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np
     j = channel
     if block == "A":
         w, f, T, ton = feat["omega"], feat["force"], feat["temp"], feat["t_on"]
+        if family.startswith("temperature") and shape and "temp_lag" in feat:
+            T = feat["temp_lag"][float(shape)]
         rate = feat["is_rate"]
         if family == "temperature_bias":
             z[:, 0] = T - T0_DEGC
@@ -168,11 +172,23 @@ def magnitude(family: str, coef: np.ndarray, scale: dict) -> float:
     return float(c[0])
 
 
+def lagged_temperature(t_s: np.ndarray, temp_degc: np.ndarray, lag_s: float) -> np.ndarray:
+    """First-order lag of the logged temperature (die vs thermometer): dT_die/dt = (T - T_die) / lag."""
+    if not lag_s:
+        return temp_degc
+    from scipy.signal import lfilter
+
+    dt = float(np.median(np.diff(t_s)))
+    a = np.exp(-dt / lag_s)
+    return lfilter([1 - a], [1, -a], temp_degc - temp_degc[0]) + temp_degc[0]
+
+
 def inject(family: str, channel, coef, shape, inp, g: np.ndarray, a: np.ndarray, rng=None):
     """Add an effect in the library's form to twin outputs (SI) of one run with recorded inputs ``inp``."""
     c = np.atleast_1d(np.asarray(coef, float))
     j = None if channel is None else CHANNEL_NAMES.index(channel)
-    T = inp.temperature_degc
+    T = lagged_temperature(inp.t_s, inp.temperature_degc, float(shape or 0.0)) if family.startswith("temperature") \
+        else inp.temperature_degc
     w, f = inp.omega_b_radps, inp.f_b_mps2
     out = [g.copy(), a.copy()]
 

@@ -58,6 +58,8 @@ def compute_views(d: Design, processed: dict) -> dict:
     b = d.xty.sum(1)
     for ai, at in enumerate(ATOMS):
         ch = None if at.channel is None else CHANNEL_NAMES[at.channel]
+        if at.family.startswith("temperature") and at.shape:
+            continue
         if at.family == "warmup_bias":
             if at.shape != 300.0:
                 continue
