@@ -138,8 +138,9 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     eff_out = []
     scale = {"omega_max": _omega_max(exp)}
     for s, (fam, ch, coef, shape) in zip(sel.accepted, effects):
-        mag = fx.magnitude(fam, coef, scale)
-        boots = np.array([fx.magnitude(fam, c[s.atom], scale) for c in aug_coefs]) if aug_coefs else np.array([])
+        chi = ATOMS[s.atom].channel
+        mag = fx.magnitude(fam, coef, scale, chi)
+        boots = np.array([fx.magnitude(fam, c[s.atom], scale, chi) for c in aug_coefs]) if aug_coefs else np.array([])
         if boots.size >= 3:
             sd = float(np.std(boots, ddof=1)) * np.sqrt(1 + 1 / boots.size)
             bias = float(np.mean(boots) - mag)  # bootstrap bias of the magnitude estimator

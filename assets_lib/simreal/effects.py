@@ -26,7 +26,7 @@ scale_factor_asymmetry      A      |omega_j|                                    
 lever_arm                   A      omega x (omega x r) on the accelerometers (3 cols)   rate runs
 table_rate_error            B      u_j omega_t {sin, cos}(k theta), k = 1, 2            rate runs
 table_wobble                B      omega_t (e_m x u)_j, -(e_m x f)_j, m = 1, 2           rate runs
-timebase_error              C      clock drift [ppm] = 1e6 eps                          runs with a table log
+timebase_error              C      clock drift [ppm] = -1e6 eps (t_imu = (1+eps) t)     runs with a table log
 =========================== ====== ==================================================== =========================
 
 Not in the deterministic library (reported ``not_testable`` with the reason): ``latency`` (a common IMU latency
@@ -150,11 +150,12 @@ def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np
                     z[:, m] = -np.cross(e, f)[:, j - 3]
     elif block == "C":
         if family == "timebase_error":
-            z[:, 0] = 1e6
+            # segmentation's clock drift of a run whose IMU stamps run fast, t_imu = (1 + eps) t_table, is -1e6 eps
+            z[:, 0] = -1e6
     return z
 
 
-def magnitude(family: str, coef: np.ndarray, scale: dict) -> float:
+def magnitude(family: str, coef: np.ndarray, scale: dict, channel: int | None = None) -> float:
     """Canonical magnitude of fitted coefficients (SI; see the family table)."""
     c = np.atleast_1d(np.asarray(coef, float))
     if family == "scale_factor_nonlinearity":
@@ -168,7 +169,10 @@ def magnitude(family: str, coef: np.ndarray, scale: dict) -> float:
     if family == "table_rate_error":
         return float(max(np.hypot(c[0], c[1]), np.hypot(c[2], c[3])))
     if family == "g_sensitivity":
-        return float(c[np.argmax(np.abs(c))])
+        # f_x^2 + f_y^2 + f_z^2 = g^2 in static positions: only differences of the three coefficients are identifiable
+        # (a common part is a bias); the magnitude is the own-axis coefficient over the mean of the other two
+        j = 0 if channel is None else channel % 3
+        return float(c[j] - np.mean(np.delete(c[:3], j)))
     return float(c[0])
 
 
