@@ -111,7 +111,10 @@ def _cycle_model(exp: DeviceExperiment, pc: int) -> CycleModel | None:
                 gf = fit_gyro_static(p)
                 for i, ax in enumerate(gf.axes):
                     for j, a in enumerate(AX):
-                        v, _, ob = ax.g_sensitivity.get(a, (0.0, 0.0, False))
+                        c = ax.g_sensitivity.get(a)
+                        if c is None:
+                            continue
+                        v, ob = (c.value, c.observable) if hasattr(c, "value") else (c[0], c[2])
                         gg[i, j] = v if ob and np.isfinite(v) else 0.0
                 found = True
         except ValueError:
