@@ -4,7 +4,7 @@ Every configuration runs in a fresh single-threaded subprocess (OPENBLAS/OMP/NUM
 the subprocess builds its input, resets the kernel's peak-RSS counter (/proc/self/clear_refs = 5), runs the
 call, and reports VmHWM minus the RSS before the call ("extra", also as a multiple of the input's size).
 Data: rate at 100 Hz, white (0.1) + rate random walk (1e-4 sqrt(0.01)) + 0.5 offset, float64, fixed seed
-(the allan.md section 3 series). Tau sets: 'octave' (allantools' octave m) and 'dense' (100 unique integer m
+(the series of the tests). Tau sets: 'octave' (allantools' octave m) and 'dense' (100 unique integer m
 log-spaced from 1 to (N-1)/2), passed as the same explicit array to both libraries.
 
     python benchmarks/bench_allan.py                 # N = 5e7 (about 10 minutes on 2 cores)
@@ -76,13 +76,13 @@ method = cfg['method']
 def warm(al, backend):
     # compile / load every kernel outside the measurement (window, chain, spill block)
     small = np.cumsum(np.random.default_rng(0).standard_normal(200_000))
-    saved = (al.M_CHAIN, al.SMALL_SPAN)
-    al.M_CHAIN, al.SMALL_SPAN = 1 << 10, 1 << 12
+    saved = (al.kernels.M_CHAIN, al.streaming.SMALL_SPAN)
+    al.kernels.M_CHAIN, al.streaming.SMALL_SPAN = 1 << 10, 1 << 12
     try:
         al.oadev(small, 100.0, 'dense', backend=backend, alpha=0)
         al.allan_stream_array(small, 100.0, 'dense', backend=backend, alpha=0)
     finally:
-        al.M_CHAIN, al.SMALL_SPAN = saved
+        al.kernels.M_CHAIN, al.streaming.SMALL_SPAN = saved
 
 if method in ('allantools', 'imulab', 'imulab_numpy'):
     y = make(n, 1)

@@ -11,12 +11,15 @@ from imulab import __version__
 #: sub-command name -> (module, one-line help shown by ``imulab --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("imulab.commands.simulate", "Write a simulated lab archive (the embedded default data)."),
+    "import": ("imulab.commands.import_", "Convert imu_tk, imucal, ROS bag/MCAP or profiled CSV logs into contract runs."),
     "ingest": ("imulab.commands.ingest", "Validate raw runs and convert them to canonical SI parquet."),
     "run": ("imulab.commands.run", "Materialize the Dagster pipeline over a lab archive."),
     "reprocess": ("imulab.commands.reprocess", "Recompute only stale partitions (changed code or raw input)."),
     "verify": ("imulab.commands.verify", "Recompute a calibration record from the raw archive and check it."),
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
+    "repeatability": ("imulab.commands.repeatability", "Turn-on bias and noise-term repeatability of static runs."),
+    "twin": ("imulab.commands.twin", "Build a device-model file (digital twin) from a device's calibration outputs."),
     "apply": ("imulab.commands.apply", "Calibrate IMU data with a calibration record or device calibration."),
     "records": ("imulab.commands.records", "List a device's records; pick the one valid at a date (staleness, drift)."),
     "export": ("imulab.commands.export", "Export a calibration for Kalibr/OpenVINS, imucal, or firmware (JSON, C header)."),

@@ -99,17 +99,24 @@ class PlanStep(_Strict):
     """
 
     index: int = Field(ge=0)
-    kind: Literal["rate", "static"]
+    kind: Literal["rate", "static", "pose", "rotation", "free"]
     start_s: float = Field(ge=0.0)
     duration_s: float = Field(gt=0.0)
     settle_s: float = Field(default=0.0, ge=0.0)
     table_rate_dps: float = 0.0
-    orientation_b2l: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+    orientation_b2l: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]] | None = None
     label: str = ""
+    #: table-free steps (test kind "tablefree"): the body axis that points up in a hand-placed "pose", if known
+    up_axis_body: Literal["+x", "-x", "+y", "-y", "+z", "-z"] | None = None
+    #: table-free "rotation" step: body axis turned about and the nominal angle turned (right-handed, deg)
+    rotation_axis_body: Literal["x", "y", "z"] | None = None
+    rotation_angle_deg: float | None = None
 
     @field_validator("orientation_b2l")
     @classmethod
     def _orthonormal(cls, v):
+        if v is None:
+            return v
         m = np.asarray(v, dtype=float)
         err = np.abs(m @ m.T - np.eye(3)).max()
         if err > 1e-6 or np.linalg.det(m) < 0:
@@ -124,8 +131,14 @@ class PlanStep(_Strict):
     def _settle_inside(self):
         if self.settle_s >= self.duration_s:
             raise ValueError("settle_s must be shorter than duration_s")
-        if self.kind == "static" and self.table_rate_dps != 0.0:
-            raise ValueError("a static step has table_rate_dps 0")
+        if self.kind in ("static", "pose", "rotation", "free") and self.table_rate_dps != 0.0:
+            raise ValueError(f"a {self.kind} step has table_rate_dps 0")
+        if self.kind in ("rate", "static") and self.orientation_b2l is None:
+            raise ValueError(f"a {self.kind} step needs orientation_b2l")
+        if self.kind != "pose" and self.up_axis_body is not None:
+            raise ValueError("up_axis_body belongs to a pose step")
+        if self.kind != "rotation" and (self.rotation_axis_body is not None or self.rotation_angle_deg is not None):
+            raise ValueError("rotation_axis_body / rotation_angle_deg belong to a rotation step")
         return self
 
 
@@ -162,7 +175,7 @@ class Manifest(_Strict):
     schema_version: Literal["1.0"]
     device: Device
     run_id: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-    test_kind: Literal["rate", "multiposition", "static", "tumble"]
+    test_kind: Literal["rate", "multiposition", "static", "tumble", "tablefree"]
     start_time_utc: datetime
     site: Site
     sample_rate_hz: float = Field(gt=0.0)
@@ -202,6 +215,16 @@ class Manifest(_Strict):
                     f"unknown unit {unit!r}",
                 )
         return v
+
+    @model_validator(mode="after")
+    def _tablefree_steps(self):
+        table_free = {"pose", "rotation", "free"}
+        for s in self.plan.steps:
+            if (s.kind in table_free) != (self.test_kind == "tablefree"):
+                raise ContractError(f"plan.steps.{s.index}.kind",
+                                    "steps of kind pose/rotation/free exactly when test_kind is 'tablefree'",
+                                    f"kind {s.kind!r} in a {self.test_kind!r} run")
+        return self
 
     @property
     def partition_key(self) -> str:

@@ -29,7 +29,7 @@ KIND_FUNCS = {
 
 
 def _series(n, seed=1, offset=0.5):
-    """White rate noise + rate random walk + offset (the allan.md benchmark series)."""
+    """White rate noise + rate random walk + offset (the benchmark series of benchmarks/bench_allan.py)."""
     rng = np.random.default_rng(seed)
     return offset + 0.1 * rng.standard_normal(n) + np.cumsum(1e-4 * np.sqrt(0.01) * rng.standard_normal(n))
 
@@ -303,7 +303,7 @@ def test_acf_noise_id_pure_noises():
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# precision: float32 input, gravity offset (allan.md section 4)
+# precision: float32 input, gravity offset (float64 accumulation, [NIST1065] eq. 4)
 # ---------------------------------------------------------------------------------------------------------------
 def test_float32_gravity_axis_matches_float64():
     n = 10_000_000
@@ -332,7 +332,7 @@ def test_float64_no_mean_bias_with_large_offset():
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("data_type", ["rate", "angle"])
 def test_streaming_parquet_identical_to_in_memory(tmp_path, monkeypatch, backend, data_type):
-    monkeypatch.setattr(al, "SMALL_SPAN", 1 << 18)  # force the cursor route for the larger taus
+    monkeypatch.setattr(al.streaming, "SMALL_SPAN", 1 << 18)  # force the cursor route for the larger taus
     n = 1_200_000  # two streaming blocks
     y = _series(n, seed=11)
     if data_type == "angle":
@@ -343,14 +343,14 @@ def test_streaming_parquet_identical_to_in_memory(tmp_path, monkeypatch, backend
     out = al.allan_parquet(path, 100.0, ["gyro_x", "gyro_y"], 40, data_type=data_type, backend=backend)
     mem = al.oadev(y, 100.0, 40, data_type=data_type, backend=backend)
     mem32 = al.oadev(y.astype(np.float32), 100.0, 40, data_type=data_type, backend=backend)
-    assert np.any(2 * mem.m > al.SMALL_SPAN) and np.any(2 * mem.m <= al.SMALL_SPAN)
+    assert np.any(2 * mem.m > al.streaming.SMALL_SPAN) and np.any(2 * mem.m <= al.streaming.SMALL_SPAN)
     np.testing.assert_array_equal(out["gyro_x"].adev, mem.adev)
     np.testing.assert_array_equal(out["gyro_x"].edf, mem.edf)
     np.testing.assert_array_equal(out["gyro_y"].adev, mem32.adev)
 
 
 def test_stream_engine_on_array_identical(monkeypatch):
-    monkeypatch.setattr(al, "SMALL_SPAN", 1 << 12)
+    monkeypatch.setattr(al.streaming, "SMALL_SPAN", 1 << 12)
     y = _series(1_300_000, seed=2)
     a = al.allan_stream_array(y, 10.0, "octave")
     b = al.oadev(y, 10.0, "octave")
@@ -359,11 +359,48 @@ def test_stream_engine_on_array_identical(monkeypatch):
 
 
 @pytest.mark.skipif(not al.HAVE_NUMBA, reason="numba not installed: one backend only")
-def test_backends_agree():
-    y = _series(500_000, seed=8)
-    a = al.oadev(y, 100.0, "dense", backend="numpy", alpha=0)
-    b = al.oadev(y, 100.0, "dense", backend="numba", alpha=0)
-    np.testing.assert_allclose(a.adev, b.adev, rtol=1e-13)
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 127, 128, 129, 1000, 4099, al.KERNEL_BLOCK])
+def test_kernel_block_sums_are_numpy_pairwise_bit_for_bit(n):
+    """The numba block sum reproduces np.add.reduce of the squared second differences term by term."""
+    rng = np.random.default_rng(n)
+    x = np.cumsum(rng.standard_normal(n + 4)) * 1e-3
+    x0, x1, x2 = x[:n], x[2 : n + 2], x[4 : n + 4]
+    d = (x2 - x1) - (x1 - x0)
+    ref = float(np.add.reduce(d * d))
+    assert al.kernels._NumbaKernel().block(x0, x1, x2) == ref
+    assert al.kernels._NumpyKernel().block(x0, x1, x2) == ref
+    y = rng.standard_normal(3 * al.SUM_BLOCK + n)
+    t = 0.0
+    for a in range(0, len(y), al.SUM_BLOCK):
+        t += float(np.add.reduce(y[a : a + al.SUM_BLOCK]))
+    assert al.kernels.block_sum(y) == t
+
+
+@pytest.mark.skipif(not al.HAVE_NUMBA, reason="numba not installed: one backend only")
+def test_backends_give_identical_stored_tables():
+    """Issue 10 item 4: what the pipeline stores (Allan table and IEEE 952 noise table, intervals included) does
+    not depend on whether the optional numba kernel is installed: both kernels give the same bits."""
+    from assets_lib.noise import identification as ni
+
+    rng = np.random.default_rng(10)
+    n = 360_000  # one hour at 100 Hz, white + flicker-like + random walk on six channels
+    data = {f"{s}_{a}": 1e-3 * rng.standard_normal(n) + np.cumsum(2e-6 * rng.standard_normal(n)) + 0.01 * k
+            for k, (s, a) in enumerate((s, a) for s in ("gyro", "accel") for a in "xyz")}
+    tables = {}
+    for backend in ("numpy", "numba"):
+        res = al.allan_deviations(pd.DataFrame(data), 100.0, "octave", ci_level=0.95, backend=backend)
+        allan = pd.concat([r.to_frame() for r in res.values()], ignore_index=True)
+        tables[backend] = (allan, ni.noise_table(ni.fit_all(res)))
+    pd.testing.assert_frame_equal(tables["numpy"][0], tables["numba"][0], check_exact=True)
+    pd.testing.assert_frame_equal(tables["numpy"][1], tables["numba"][1], check_exact=True)
+    y = _series(500_000, seed=8)  # dense grid: the chain partition (m >= M_CHAIN) too, and the streaming route
+    a = al.oadev(y, 100.0, "dense", backend="numpy")
+    b = al.oadev(y, 100.0, "dense", backend="numba")
+    c = al.allan_stream_array(y, 100.0, "dense", backend="numba")
+    assert np.any(a.m >= al.M_CHAIN)
+    for f in ("adev", "ci_lo", "ci_hi", "edf", "alpha"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        np.testing.assert_array_equal(getattr(a, f), getattr(c, f))
 
 
 def test_six_channels_equal_single_calls():

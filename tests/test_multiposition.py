@@ -28,19 +28,23 @@ Z_FAMILY = 4.0  # |z| bound for ~20-40 simultaneous checks in one fixed-seed tri
 G0 = 9.80665
 
 
+def _vso(c):
+    return c.value, c.stderr, c.observable
+
+
 def _accel_checks(fit, t, *, k2=True, kc=True):
     out = []
     for i, a in enumerate(AX):
         ax = fit.axis(a)
-        out.append((f"K_{a}", *ax.scale_factor, t.Ka[i]))
-        out.append((f"b_{a}", *ax.bias_mps2, t.ba[i]))
+        out.append((f"K_{a}", *_vso(ax.scale_factor), t.Ka[i]))
+        out.append((f"b_{a}", *_vso(ax.bias_mps2), t.ba[i]))
         for j, b in enumerate(AX):
             if j != i:
-                out.append((f"E_{a}{b}", *ax.misalignment_rad[b], t.Ea[i, j]))
+                out.append((f"E_{a}{b}", *_vso(ax.misalignment_rad[b]), t.Ea[i, j]))
                 if kc:
-                    out.append((f"Kc_{a}{b}", *ax.cross_coupling[b], t.Kca[i, j]))
+                    out.append((f"Kc_{a}{b}", *_vso(ax.cross_coupling[b]), t.Kca[i, j]))
         if k2:
-            out.append((f"K2_{a}", *ax.k2, t.K2a[i]))
+            out.append((f"K2_{a}", *_vso(ax.k2), t.K2a[i]))
     return out
 
 
@@ -106,7 +110,7 @@ def test_k2_without_horizontal_positions_is_absorbed_into_bias():
     assert not row.observable and np.isnan(row.value)
     assert "bias" in row.note and "absorbed" in row.note
     # the scale factor is still determined (up minus down)
-    k, s, ob = fit.axis("x").scale_factor
+    k, s, ob = _vso(fit.axis("x").scale_factor)
     assert ob and abs(k - t.Ka[0]) < Z_FAMILY * s
 
 
@@ -123,17 +127,17 @@ def test_tumble_plateau_table_matches_the_means_fit():
     theta = 30.0 * np.arange(12)
     mf = fit_tumble_means(theta, tab["accel_x_mps2_mean"], tab["accel_x_mps2_sem"], misalignment_term=True,
                           output_unit="m/s^2")
-    assert np.isclose(mf.coefficient("K0").value, ax.bias_mps2[0], rtol=1e-9, atol=1e-12)
-    assert np.isclose(mf.coefficient("K1").value, ax.scale_factor[0] * g, rtol=1e-9)
-    assert np.isclose(mf.coefficient("K2").value, ax.k2[0] * g**2, rtol=1e-9)
-    assert np.isclose(mf.coefficient("K3").value, ax.cross_coupling["y"][0] * g**2, rtol=1e-9)
-    assert np.isclose(mf.coefficient("K1").stderr, ax.scale_factor[1] * g, rtol=1e-6)
+    assert np.isclose(mf.coefficient("K0").value, ax.bias_mps2.value, rtol=1e-9, atol=1e-12)
+    assert np.isclose(mf.coefficient("K1").value, ax.scale_factor.value * g, rtol=1e-9)
+    assert np.isclose(mf.coefficient("K2").value, ax.k2.value * g**2, rtol=1e-9)
+    assert np.isclose(mf.coefficient("K3").value, ax.cross_coupling["y"].value * g**2, rtol=1e-9)
+    assert np.isclose(mf.coefficient("K1").stderr, ax.scale_factor.stderr * g, rtol=1e-6)
     # what one tumble about z cannot see
     ct = fit.coefficient_table().set_index(["axis", "coefficient"])
     for key in (("x", "misalignment_xz"), ("x", "cross_coupling_xz"), ("z", "scale_factor"), ("z", "k2")):
         assert not ct.loc[key, "observable"], key
-    for name, v, s, truth in (("K", *ax.scale_factor[:2], t.Ka[0]), ("b", *ax.bias_mps2[:2], t.ba[0]),
-                              ("K2", *ax.k2[:2], t.K2a[0]), ("Kc", *ax.cross_coupling["y"][:2], t.Kca[0, 1])):
+    for name, v, s, truth in (("K", ax.scale_factor.value, ax.scale_factor.stderr, t.Ka[0]), ("b", ax.bias_mps2.value, ax.bias_mps2.stderr, t.ba[0]),
+                              ("K2", ax.k2.value, ax.k2.stderr, t.K2a[0]), ("Kc", ax.cross_coupling["y"].value, ax.cross_coupling["y"].stderr, t.Kca[0, 1])):
         assert abs(v - truth) < Z_FAMILY * s, name
 
 
@@ -174,19 +178,19 @@ def test_gyro_static_bias_with_earth_rate_removed_and_g_sensitivity():
     stat_tab = build_table(t, static_steps(plan_24_position()), rng=rng, gyro_sem=np.radians(0.005 / 3600))
     gs = fit_gyro_static(stat_tab, rate_fit=rf)
     for i, ax in enumerate(gs.axes):
-        v, s, ob = ax.bias_radps
+        v, s, ob = _vso(ax.bias_radps)
         assert ob and abs(v - t.bg[i]) < Z_FAMILY * s, (ax.axis, v, t.bg[i], s)
         for j, b in enumerate(AX):
-            v, s, ob = ax.g_sensitivity[b]
+            v, s, ob = _vso(ax.g_sensitivity[b])
             assert ob and abs(v - t.Gg[i, j]) < Z_FAMILY * s, (ax.axis, b)
     # without removing earth rate (pretend no reference): biases absorb it
     blind = stat_tab.copy()
     for a in AX:
         blind[f"omega_ref_{a}_radps"] = 0.0
     gb = fit_gyro_static(blind, rate_fit=rf)
-    err = np.abs(gb.bias_radps - t.bg) + np.array([np.abs(gb.axes[i].g_sensitivity[b][0] - t.Gg[i, j]).max() * 9.8
+    err = np.abs(gb.bias_radps - t.bg) + np.array([np.abs(gb.axes[i].g_sensitivity[b].value - t.Gg[i, j]).max() * 9.8
                                                    for i in range(3) for j, b in enumerate(AX)]).reshape(3, 3).max(1)
-    assert np.all(err > 100 * np.array([ax.bias_radps[1] for ax in gs.axes]))
+    assert np.all(err > 100 * np.array([ax.bias_radps.stderr for ax in gs.axes]))
     ct = gs.coefficient_table()
     assert list(ct.columns[: len(COEFFICIENT_COLUMNS)]) == COEFFICIENT_COLUMNS
     assert (ct[ct.coefficient == "bias"].unit_lab == "deg/h").all()

@@ -137,3 +137,20 @@ def test_monte_carlo_bias_and_coverage():
         bias = np.mean(est[name]) / getattr(p, name.lower()) - 1.0
         assert abs(bias) < 0.05, (name, bias)
         assert cov[name] / trials >= 0.8, (name, cov[name])
+
+
+def test_docstrings_cite_only_listed_references():
+    """Every [KEY] a docstring of the calibration, noise and fleet packages cites is an entry of docs/references.md,
+    and no docstring points at private notes (allan.md, effects.md)."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    listed = set(re.findall(r"^- \*\*\[([A-Z0-9-]+)\]", (root / "docs" / "references.md").read_text(), re.M))
+    assert {"IEEE952", "IEEE1293", "NIST1065", "SEED000", "SEED003", "GREENHALL2003"} <= listed
+    for pkg in ("calibration", "noise", "fleet"):
+        for path in (root / "assets_lib" / pkg).rglob("*.py"):
+            text = path.read_text()
+            cited = set(re.findall(r"\[([A-Z][A-Z0-9-]{2,})\]", text))
+            assert cited <= listed, (path, cited - listed)
+            assert not re.search(r"\b(allan|effects|anchors)\.md\b", text), path

@@ -21,11 +21,12 @@ def _z_checks(fit, t):
     out = []
     for i, a in enumerate(AX):
         ax = fit.axis(a)
-        out.append((f"K_{a}", ax.scale_factor, ax.scale_factor_stderr, t.Kg[i]))
-        out.append((f"b_{a}", ax.bias_radps, ax.bias_stderr_radps, t.bg[i]))
+        out.append((f"K_{a}", ax.scale_factor.value, ax.scale_factor.stderr, t.Kg[i]))
+        out.append((f"b_{a}", ax.bias_radps.value, ax.bias_radps.stderr, t.bg[i]))
         for j, b in enumerate(AX):
             if j != i:
-                v, s, ob = ax.misalignment_rad[b]
+                c = ax.misalignment_rad[b]
+                v, s, ob = c.value, c.stderr, c.observable
                 assert ob, f"E_{a}{b} should be observable with rate tests about all three axes"
                 out.append((f"E_{a}{b}", v, s, t.Eg[i, j]))
     return out
@@ -96,7 +97,7 @@ def test_saturated_top_plateaus_are_excluded_and_reported():
             assert "saturat" in ax.fit.exclusion_reason[r], ax.fit.exclusion_reason[r]
         inside = np.flatnonzero(np.abs(om[:, i]) < np.radians(210))
         assert ax.fit.used[inside].all()
-        assert abs(ax.scale_factor - t.Kg[i]) < Z_FAMILY * ax.scale_factor_stderr
+        assert abs(ax.scale_factor.value - t.Kg[i]) < Z_FAMILY * ax.scale_factor.stderr
     ex = fit.exclusions()
     assert len(ex) == 12 and ex["reason"].str.contains("saturated").all()
 
@@ -124,7 +125,7 @@ def test_single_axis_rate_test_reports_unobservable_coefficients():
     fit = fit_gyro_rate(tab)
     ct = fit.coefficient_table().set_index(["axis", "coefficient"])
     assert ct.loc[("z", "scale_factor"), "observable"]
-    assert abs(fit.axis("z").scale_factor - t.Kg[2]) < Z_FAMILY * fit.axis("z").scale_factor_stderr
+    assert abs(fit.axis("z").scale_factor.value - t.Kg[2]) < Z_FAMILY * fit.axis("z").scale_factor.stderr
     for key in (("z", "misalignment_zx"), ("z", "misalignment_zy"), ("x", "scale_factor"), ("y", "scale_factor"),
                 ("x", "misalignment_xy")):
         row = ct.loc[key]
@@ -165,9 +166,9 @@ def test_nonlinearity_and_asymmetry_are_measured():
     tab["gyro_x_radps_mean"] += c3 * wx**3
     fit = fit_gyro_rate(tab)
     sz = fit.axis("z").sweep
-    assert abs(sz.asymmetry - eps) < Z_FAMILY * sz.asymmetry_stderr
-    assert sz.asymmetry_stderr < eps / 10
-    assert abs(fit.axis("x").sweep.asymmetry) < Z_FAMILY * fit.axis("x").sweep.asymmetry_stderr
+    assert abs(sz.asymmetry.value - eps) < Z_FAMILY * sz.asymmetry.stderr
+    assert sz.asymmetry.stderr < eps / 10
+    assert abs(fit.axis("x").sweep.asymmetry.value) < Z_FAMILY * fit.axis("x").sweep.asymmetry.stderr
     # expected x nonlinearity: max deviation of the noiseless cubic from its own LS line over the sweep
     sweep = np.abs(wx) > 1e-3
     w = np.r_[wx[sweep], 0.0]
@@ -175,10 +176,10 @@ def test_nonlinearity_and_asymmetry_are_measured():
     line = np.polyval(np.polyfit(w, ycub + t.Kg[0] * w, 1), w)
     expected = np.max(np.abs(ycub + t.Kg[0] * w - line)) / (t.Kg[0] * np.max(np.abs(w)))
     sx = fit.axis("x").sweep
-    assert sx.nonlinearity > sx.nonlinearity_floor  # detected above the noise floor
-    assert abs(sx.nonlinearity - expected) < Z_FAMILY * sx.nonlinearity_stderr + 0.1 * expected
+    assert sx.nonlinearity.value > sx.nonlinearity_floor  # detected above the noise floor
+    assert abs(sx.nonlinearity.value - expected) < Z_FAMILY * sx.nonlinearity.stderr + 0.1 * expected
     sy = fit.axis("y").sweep
-    assert sy.nonlinearity < 2 * sy.nonlinearity_floor  # no injected nonlinearity on y
+    assert sy.nonlinearity.value < 2 * sy.nonlinearity_floor  # no injected nonlinearity on y
 
 
 def test_flagged_plateau_is_excluded_with_segmentation_reason():
@@ -270,4 +271,29 @@ def test_rail_plateau_next_to_a_flat_top_is_excluded():
         assert len(at_rail) >= 2
         for r in at_rail:
             assert not ax.fit.used[r] and ax.fit.exclusion_reason[r].startswith("saturated"), (a, r)
-        assert abs(ax.scale_factor - t.Kg[i]) < Z_FAMILY * ax.scale_factor_stderr
+        assert abs(ax.scale_factor.value - t.Kg[i]) < Z_FAMILY * ax.scale_factor.stderr
+
+
+def test_one_lab_unit_table_and_typed_coefficient():
+    """raw_schemas.units.lab_unit is the one lab-unit table (calibration coefficients and noise terms); a
+    Coefficient converts with it, carries its interval and is NaN when unobservable."""
+    import math
+
+    from assets_lib.coefficient import Coefficient
+    from raw_schemas.units import lab_unit
+
+    deg_h = lab_unit("gyro", "bias")
+    assert (deg_h.si, deg_h.lab) == ("rad/s", "deg/h") and math.isclose(deg_h.to_lab(math.radians(1 / 3600)), 1.0)
+    assert lab_unit("accel", "bias").lab == "mg" and math.isclose(lab_unit("accel", "bias").to_lab(9.80665e-3), 1.0)
+    sf = lab_unit("gyro", "scale_factor")
+    assert sf.lab == "ppm" and math.isclose(sf.to_lab(1.0 + 25e-6), 25.0)
+    assert lab_unit("accel", "B").lab == "ug" and lab_unit("gyro", "N").lab == "deg/sqrt(h)"
+    assert lab_unit("gyro", "B").factor == deg_h.factor  # one conversion for deg/h, wherever it is used
+    with pytest.raises(KeyError):
+        lab_unit("gyro", "temperature_coefficient")
+    c = Coefficient.with_coverage(1.0 + 10e-6, 2e-6, "1", True, k=2.5)
+    assert c.interval() == (c.value - 2.5 * c.stderr, c.value + 2.5 * c.stderr)
+    ppm = c.to_lab(sf)
+    assert math.isclose(ppm.value, 10.0) and math.isclose(ppm.stderr, 2.0) and math.isclose(ppm.ci_low, 10.0 - 5.0)
+    u = Coefficient(3.0, 1.0, "rad", observable=False)
+    assert math.isnan(u.value) and math.isnan(u.stderr) and not u.observable

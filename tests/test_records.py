@@ -413,7 +413,7 @@ def test_static_record_verifies_with_the_numpy_kernel(lab, monkeypatch):
     numpy kernel (the optional numba one disabled)."""
     from assets_lib.noise import allan
 
-    monkeypatch.setattr(allan, "HAVE_NUMBA", False)
+    monkeypatch.setattr(allan.kernels, "HAVE_NUMBA", False)  # the kernel module decides (allan is a package)
     vdir = lab["st"].version_dir("calibration_record", BAD_DEVICE)
     res = _verify(vdir / f"{STATIC_RUN}.json", "--shallow")
     assert res.exit_code == 0, res.output

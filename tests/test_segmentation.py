@@ -136,6 +136,21 @@ def test_sem_calibrated_on_flicker_plus_random_walk():
     assert 0.6 <= ratio <= 1.4  # median SEM^2 / true sigma_A^2(T)
 
 
+def test_window_allan_variance_agrees_with_the_noise_package():
+    """The short-window estimator of the pooled SEM model (noise.pooled.overlapping_avar, cumulative-sum form) is
+    the same quantity as noise.allan.oadev; they differ only in summation order."""
+    from assets_lib.noise import allan as al
+    from assets_lib.noise.pooled import overlapping_avar
+
+    x = np.random.default_rng(3).standard_normal(6000) * 1e-3 + np.cumsum(1e-6 * np.ones(6000))
+    m = np.array([1, 2, 4, 16, 64, 256, 1024, 2999])
+    avar, n_terms = overlapping_avar(x, m)
+    ref = al.oadev(x, 1.0, m.astype(float), alpha=0)
+    np.testing.assert_array_equal(ref.m, m)
+    np.testing.assert_array_equal(n_terms, ref.n_terms)
+    np.testing.assert_allclose(avar, ref.adev**2, rtol=1e-12, atol=0)
+
+
 def test_sem_on_white_noise_is_sigma_over_sqrt_n():
     """No over-correction: on white noise the model selection keeps (almost always) the white terms only."""
     z_std, naive_std, ratio = _sem_z(AllanParams(n=1e-3), 24, 30.0, trials=30, seed=4)

@@ -452,3 +452,43 @@ def test_written_archive(tmp_path):
     truth_files = sorted((landing / "_truth").rglob("*.json"))
     assert len(truth_files) == len(paths)
     assert not any(p.name.endswith(".json") and p.name != "manifest.json" for d in paths for p in d.iterdir())
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Truth files, effect chains and time since power-on (the digital twin)
+# ------------------------------------------------------------------------------------------------------------
+def test_truth_file_round_trips_truth_and_effect_chain(tmp_path):
+    from assets_lib.sim.effects import EFFECTS, sensor_chain
+    from assets_lib.sim.simulator import load_truth
+
+    truth = example_device("TAC-8", "tactical", 4)
+    chain = sensor_chain([EFFECTS["bias_step"](at_s=3.0, gyro_radps=(1e-4, 0, 0)), EFFECTS["latency"](gyro_s=1e-3),
+                          EFFECTS["noise_model"](gyro_gm_sigma_radps=1e-5)])
+    names = [e.name for e in chain]
+    assert names.index("latency") < names.index("error_model") < names.index("bias_step") < names.index("allan_noise")
+    assert names.index("allan_noise") < names.index("noise_model") < names.index("saturation")
+    run = simulate_run(truth, build_plan("quick_rate", duration_scale=0.05), "r", test_kind="rate", effects=chain,
+                       seed=8, power_on_s=60.0)
+    write_run(run, tmp_path)
+    tf = load_truth(tmp_path / "_truth" / "TAC-8" / "r.json")
+    assert tf.truth == truth and tf.effects == chain and tf.power_on_s == 60.0 and tf.seed == 8
+    assert tf.table_clock_offset_s == run.table_clock_offset_s
+    # the default chain writes the truth file as before (no effect parameters, no power-on, no seed)
+    plain = simulate_run(truth, build_plan("quick_rate", duration_scale=0.05), "p", test_kind="rate", seed=8)
+    write_run(plain, tmp_path)
+    doc = json.loads((tmp_path / "_truth" / "TAC-8" / "p.json").read_text())
+    assert sorted(doc) == ["effects", "table_clock_offset_s", "truth"]
+    doc["effects"].append("plateau_disturbance")
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="cannot be rebuilt"):
+        load_truth(tmp_path / "bad.json")
+
+
+def test_housing_temperature_continues_across_the_runs_of_a_power_cycle():
+    truth = ideal_truth()
+    plan = build_plan("static_long", static_duration_s=100.0)
+    a = simulate_run(truth, plan, "a", test_kind="static", effects=IDEAL, table_log=False)
+    b = simulate_run(truth, plan, "b", test_kind="static", effects=IDEAL, table_log=False, power_on_s=900.0)
+    ta, tb = a.imu_raw["temperature"].to_numpy(), b.imu_raw["temperature"].to_numpy()
+    # 25 + 1.5 (1 - exp(-t/900)): 25.0 at power-on, 25 + 1.5 (1 - 1/e) = 25.948 degC 900 s later (+-0.02 K noise)
+    assert abs(ta[:100].mean() - 25.0) < 0.01 and abs(tb[:100].mean() - (25 + 1.5 * (1 - np.exp(-1)))) < 0.01

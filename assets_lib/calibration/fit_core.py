@@ -1,6 +1,6 @@
 """Weighted least squares with identifiability analysis, automatic exclusions and honest covariance.
 
-The engine behind every calibration fit (gyro rate fit, accelerometer multi-position fit, the seed 001
+The engine behind every calibration fit (gyro rate fit, accelerometer multi-position fit, the [SEED001]
 plateau-mean fits). Pure numpy/scipy.
 
 Identifiability (which coefficients a schedule observes)
@@ -22,9 +22,9 @@ Identifiability (which coefficients a schedule observes)
 
 Exclusions
     Rows may be pre-excluded (segmentation flags, saturation). Then, iteratively, the externally studentized
-    residual (leave-one-out, Belsley-Kuh-Welsch) of every testable row is compared with the Bonferroni
+    residual (leave-one-out, [BELSLEY1980]) of every testable row is compared with the Bonferroni
     critical value t_{1 - alpha / (2 n)}(dof - 1), alpha = 0.01 family-wise; the worst row beyond it is excluded and the fit repeated,
-    at most ``max_exclusion_fraction`` of the rows (Cook & Weisberg 1982, sec. 2.2.1: Bonferroni outlier test).
+    at most ``max_exclusion_fraction`` of the rows ([COOK1982], sec. 2.2.1: Bonferroni outlier test).
     The scale of the test is the residual scatter, not the plateau standard errors, so a genuine smooth
     nonlinearity (systematic residuals everywhere) does not turn the end plateaus into "outliers".
 
@@ -42,13 +42,13 @@ Covariance (``cov_policy``)
     the two sources of information about it ("pooled"): the sems' own absolute level, treated as a prior
     estimate phi = 1 worth nu_0 = 4 degrees of freedom, and the residual chi-square with nu = n - p:
     phi = (nu_0 + chi^2) / (nu_0 + nu), intervals Student-t with nu_0 + nu dof (the conjugate scaled-inverse-
-    chi^2 update; GUM 4.2 / G.4 Type A with effective degrees of freedom). Why not the sems alone: they describe
+    chi^2 update; [GUM] 4.2 / G.4 Type A with effective degrees of freedom). Why not the sems alone: they describe
     the noise *within* a plateau (segmentation's Allan-based sem), not what varies *between* plateaus over a
     run (bias instability and rate random walk across minutes, table and fixture errors, temperature), and an
     underestimate of 15-30 % costs 2-3 points of coverage. Why not the scatter alone: with few dof (a 6-position
     plan has one) it is too noisy, and nu_0 = 4 (~ +/-35 % on sigma) keeps it in check. Why not "the larger of
     the two": it over-covers (~96.5 % at nu = 17) when the sems are right. A chi-square consistency test
-    (p < 0.001) adds a warning naming the likely causes (Cox 2002, Metrologia 39:589). Without sems, ordinary
+    (p < 0.001) adds a warning naming the likely causes ([COX2002]). Without sems, ordinary
     least squares with phi = RSS/nu and Student-t(nu) intervals ("residual").
 """
 
@@ -66,7 +66,7 @@ DEFAULT_SEM_PRIOR_DOF = 4.0  # degrees of freedom given to the plateau sems' abs
 
 @dataclass(frozen=True, eq=False)
 class Identifiability:
-    """Seed 003 eq. 3 pre-check: which columns of x = (A^T A)^-1 A^T b the schedule determines."""
+    """[SEED003] eq. 3 pre-check: which columns of x = (A^T A)^-1 A^T b the schedule determines."""
 
     observable: np.ndarray  # (p,) bool
     excitation: np.ndarray  # (p,) RMS orthogonal excitation in full-scale units
@@ -212,6 +212,23 @@ def identifiability(
     return Identifiability(observable=obs, excitation=exc, reason=tuple(reason), condition_number=cond)
 
 
+@dataclass(frozen=True, eq=False)
+class WeightedSolution:
+    """One weighted least-squares solve over the rows in use (the inner step of :func:`fit_linear`)."""
+
+    ident: Identifiability
+    observable: np.ndarray  # (p,) bool, columns solved for
+    rows: np.ndarray  # indices of the rows used
+    weights: np.ndarray  # 1/sigma of those rows (ones without sems)
+    x: np.ndarray  # (k,) solution on the observable columns
+    cov_unscaled: np.ndarray  # (k, k) (A^T W A)^-1
+    leverage: np.ndarray  # hat diagonal of the used rows
+    weighted_residual: np.ndarray  # (y - A x) / sigma on the used rows
+    chi2: float  # weighted residual sum of squares
+    n_observable: int
+    dof: int
+
+
 def _solve(Aw: np.ndarray, yw: np.ndarray):
     """Least squares via thin QR on column-equilibrated weighted design; returns x, (Aw^T Aw)^-1, hat diag."""
     norms = np.linalg.norm(Aw, axis=0)
@@ -245,7 +262,7 @@ def fit_linear(
     times: tuple[np.ndarray, np.ndarray] | None = None,
     flicker_tau2: float | None = None,
 ) -> LinearFit:
-    """Seed 003 eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
+    """[SEED003] eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
 
     ``A`` (n, p) design in physical units, columns in priority order; ``y`` (n,) observations; ``sigma`` (n,)
     standard errors of the observations (plateau sems) or None; ``scales`` (p,) physical full-scale of each
@@ -305,7 +322,7 @@ def fit_linear(
         else:
             x, C0, h = _solve(Aw, yw)
         rw = yw - Aw @ x if k else yw.copy()
-        return ident, obs, idx, w, x, C0, h, rw, float(rw @ rw), k, len(idx) - k
+        return WeightedSolution(ident, obs, idx, w, x, C0, h, rw, float(rw @ rw), k, len(idx) - k)
 
     opt_base = np.zeros(p, bool) if optional is None else np.asarray(optional, bool)
     if screen_columns is not None and np.asarray(screen_columns).size:
@@ -318,8 +335,8 @@ def fit_linear(
         o_scr = np.r_[opt_base, np.ones(S.shape[1], bool)]
     else:
         A_scr, As_scr, n_scr, o_scr = A, As, names, opt_base
-    def studentized(fitres):
-        _, _, idx, w, _, _, h, rw, chi2, _, dof = fitres
+    def studentized(sol: WeightedSolution):
+        idx, h, rw, chi2, dof = sol.rows, sol.leverage, sol.weighted_residual, sol.chi2, sol.dof
         if dof < 3 or chi2 <= 0:
             return None
         testable = h < 1.0 - 1e-9
@@ -346,7 +363,7 @@ def fit_linear(
         j = int(np.argmax(score))
         if score[j] <= 1.0:
             break
-        idx, w, rw = base[2], base[3], base[7]
+        idx, w, rw = base.rows, base.weights, base.weighted_residual
         row = int(idx[j])
         used[row] = False
         kind[row] = "outlier"
@@ -358,7 +375,9 @@ def fit_linear(
             + (f"; {note}" if note else "")
         )
         n_out += 1
-    ident, obs, idx, w, x, C0, h, rw, chi2, k, dof = wfit(A, As, names, opt_base)
+    sol = wfit(A, As, names, opt_base)
+    ident, obs, idx, w, x, C0, h = sol.ident, sol.observable, sol.rows, sol.weights, sol.x, sol.cov_unscaled, sol.leverage
+    chi2, k, dof = sol.chi2, sol.n_observable, sol.dof
     tau2 = 0.0
     if times is not None and sig is not None and k and dof >= 3:
         t_mid, t_len = (np.asarray(v, float) for v in times)
@@ -466,7 +485,7 @@ def log_kernel(t_mid: np.ndarray, t_len: np.ndarray) -> np.ndarray:
 
 def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray,
                 tau2: float | None = None):
-    """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML (Patterson-Thompson).
+    """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML ([PATTERSON1971]).
 
     Bias instability (flicker) makes plateau errors correlated over the run: low-frequency contrasts (up vs down
     positions several minutes apart) do not average down as independent sems promise, and the residual scatter,
@@ -521,128 +540,3 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
         return 0.0, None, None, None
     Rinv = np.linalg.solve(R, np.eye(p))
     return tau2, x, Rinv @ Rinv.T, float(r @ r)
-
-
-def ratio_with_stderr(num: float, den: float, var_num: float, var_den: float, cov_nd: float) -> tuple[float, float]:
-    """Delta method for num/den (first order)."""
-    r = num / den
-    var = (var_num + r**2 * var_den - 2 * r * cov_nd) / den**2
-    return float(r), float(np.sqrt(max(var, 0.0)))
-
-
-def detect_saturation(
-    x: np.ndarray,
-    y: np.ndarray,
-    sigma: np.ndarray | None = None,
-    *,
-    gain_ratio: float = 0.5,
-    n_sigma: float = 5.0,
-    rail: bool = True,
-    sample_sigma: np.ndarray | None = None,
-    x_unit: str = "",
-    x_factor: float = 1.0,
-) -> dict[int, str]:
-    """Saturation at both ends of a rate sweep; returns {row: reason} (effects.md: flat tops beyond full scale).
-
-    1. Flat top. Sort by input; take the robust (Theil-Sen) gain K of the sweep. Walking inward from each end,
-       a plateau is saturated when its incremental gain to the next inner plateau is below ``gain_ratio`` * K
-       (the output has stopped following the input: no sensor loses half its gain inside its linear range)
-       *and* the output shortfall K dx - dy exceeds ``n_sigma`` standard errors of the difference (sems when
-       given, else the robust residual scale of the sweep, 1.4826 MAD).
-    2. At the rail (``rail=True``). Once an end has a flat top, its level is the rail. Walking further inward, a
-       plateau whose straight-line prediction (Theil-Sen on the remaining plateaus) comes within 3 sample
-       standard deviations of the rail has samples clipped, so its mean is biased towards the rail: it is
-       saturated too. The sample standard deviation is ``sample_sigma`` (e.g. sem * sqrt(n_samples)) or the
-       robust residual scale.
-
-    ``x_factor``/``x_unit`` only format the reason (e.g. rad/s shown in deg/s).
-    """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    ok = np.isfinite(x) & np.isfinite(y)
-    idx = np.flatnonzero(ok)
-    out: dict[int, str] = {}
-    if len(idx) < 4:
-        return out
-    xs, ys = x[idx], y[idx]
-    if np.ptp(xs) <= 0:
-        return out
-    K = stats.theilslopes(ys, xs).slope
-    if K == 0 or not np.isfinite(K):
-        return out
-    a = np.median(ys - K * xs)
-    res = ys - a - K * xs
-    s_rob = 1.4826 * np.median(np.abs(res - np.median(res)))
-    if sigma is not None:
-        sg = np.asarray(sigma, float)[idx]
-        sg = np.where(np.isfinite(sg) & (sg > 0), sg, s_rob)
-    else:
-        sg = np.full(len(idx), s_rob)
-    sg = np.maximum(sg, 1e-12 * (np.max(np.abs(ys)) + 1e-300))
-    if sample_sigma is not None:
-        ss = np.asarray(sample_sigma, float)[idx]
-        ss = np.where(np.isfinite(ss) & (ss > 0), ss, np.maximum(s_rob, sg))
-    else:
-        ss = np.maximum(s_rob, sg)
-    order = np.argsort(xs, kind="stable")
-    max_flag = len(idx) // 2
-
-    def walk(seq):
-        flagged = []
-        for m in range(len(seq) - 1):
-            j, i_in = seq[m], seq[m + 1]
-            dx = xs[j] - xs[i_in]
-            if dx == 0:
-                break
-            dy = ys[j] - ys[i_in]
-            local = dy / dx
-            shortfall = np.sign(K) * (K * dx - dy) * np.sign(dx)
-            sd = np.sqrt(sg[j] ** 2 + sg[i_in] ** 2)
-            if local / K < gain_ratio and shortfall > n_sigma * sd and len(flagged) < max_flag:
-                flagged.append((j, local, shortfall / sd))
-            else:
-                break
-        return flagged
-
-    ends = [walk(list(order[::-1])), walk(list(order))]
-    for flagged in ends:
-        for j, local, nsd in flagged:
-            out[int(idx[j])] = (
-                f"saturated: at input {xs[j] * x_factor:+.6g} {x_unit} the output has stopped following the input "
-                f"(incremental gain {local / K:.2f} of the sweep's robust gain, shortfall {nsd:.0f} sigma); "
-                "beyond the linear range"
-            )
-    if rail and any(ends):
-        keep = np.array([int(idx[k]) not in out for k in range(len(idx))])
-        if keep.sum() >= 3:
-            ts = stats.theilslopes(ys[keep], xs[keep])
-            line = ts.intercept + ts.slope * xs
-            for flagged, seq in zip(ends, (list(order[::-1]), list(order))):
-                if not flagged:
-                    continue
-                y_rail = float(np.median([ys[j] for j, _, _ in flagged]))
-                direction = np.sign(y_rail - np.median(ys))
-                inner = [k for k in seq if int(idx[k]) not in out]
-                for k in inner:
-                    gap = direction * (y_rail - line[k])  # > 0: the line stays inside the rail
-                    if gap < 3.0 * ss[k] and len(out) < max_flag:
-                        where = (f"comes within {gap / ss[k]:.1f} sample standard deviations of" if gap >= 0 else
-                                 f"lies {-gap / ss[k]:.1f} sample standard deviations beyond")
-                        out[int(idx[k])] = (
-                            f"saturated: at input {xs[k] * x_factor:+.6g} {x_unit} the straight-line output {where} "
-                            f"the rail set by the flat-top plateau(s) ({y_rail:.6g}): at the rail, clipped samples "
-                            "bias the mean"
-                        )
-                    else:
-                        break
-    return out
-
-
-def off_diagonal_matrix(axes, attr: str, names=("x", "y", "z")) -> np.ndarray:
-    """3x3 matrix M[i, j] = value of ``getattr(axes[i], attr)[names[j]]`` (a (value, stderr, ...) tuple), zero diagonal."""
-    m = np.zeros((3, 3))
-    for i, ax in enumerate(axes):
-        for j, a in enumerate(names):
-            if j != i:
-                m[i, j] = getattr(ax, attr)[a][0]
-    return m

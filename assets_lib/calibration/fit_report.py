@@ -3,17 +3,19 @@
 Values are SI in ``value``/``stderr``/``unit``; lab units only in ``value_lab``/``stderr_lab``/``unit_lab``:
 ppm for scale-factor error (K - 1), nonlinearity and asymmetry; deg/h for gyro bias; mg for accelerometer
 bias; arcsec for misalignment; ug/g^2 for K2 and cross-coupling; deg/h/g for gyro g-sensitivity.
-g in lab units is standard gravity (ISO 80000-3, 9.80665 m/s^2): a unit, not the local gravity.
+g in lab units is standard gravity ([ISO80000-3], 9.80665 m/s^2): a unit, not the local gravity. Every
+conversion comes from the one lab-unit table, ``raw_schemas.units.lab_unit``.
 """
 
 from __future__ import annotations
 
 import io
-import math
 
 import numpy as np
 import pandas as pd
 
+from assets_lib.coefficient import Coefficient
+from raw_schemas.units import RADPS_TO_DEGPH, RADPS_TO_DEGPS, lab_unit
 from raw_schemas.units import STANDARD_GRAVITY_MPS2 as G0
 
 COEFFICIENT_COLUMNS = [
@@ -36,33 +38,6 @@ COEFFICIENT_COLUMNS = [
 #: extra columns after the contract ones: 95 % interval (SI) with the right coverage factor, and the fit dof
 EXTRA_COEFFICIENT_COLUMNS = ["ci95_low", "ci95_high", "dof", "cov_policy", "note"]
 
-RAD_TO_ARCSEC = 180.0 / math.pi * 3600.0
-RADPS_TO_DEGPH = 180.0 / math.pi * 3600.0
-RADPS_TO_DEGPS = 180.0 / math.pi
-
-
-def units_of(sensor: str, coefficient: str) -> tuple[str, str, float, float]:
-    """(SI unit, lab unit, lab factor, lab offset): value_lab = factor * value + offset."""
-    c = coefficient
-    if c == "bias":
-        return ("rad/s", "deg/h", RADPS_TO_DEGPH, 0.0) if sensor == "gyro" else ("m/s^2", "mg", 1e3 / G0, 0.0)
-    if c in ("scale_factor", "scale_factor_pos", "scale_factor_neg"):
-        return "1", "ppm", 1e6, -1e6
-    if c in ("sf_nonlinearity", "sf_asymmetry", "sf_nonlinearity_floor"):
-        return "1", "ppm", 1e6, 0.0
-    if c.startswith("misalignment_"):
-        return "rad", "arcsec", RAD_TO_ARCSEC, 0.0
-    if c.startswith("g_sensitivity_"):
-        return "rad/s/(m/s^2)", "deg/h/g", RADPS_TO_DEGPH * G0, 0.0
-    if c == "k2" or c.startswith("cross_coupling_"):
-        return "1/(m/s^2)", "ug/g^2", G0 * 1e6, 0.0
-    if c in ("bias_repeatability",):
-        return units_of(sensor, "bias")
-    if c in ("scale_factor_repeatability",):
-        return "1", "ppm", 1e6, 0.0
-    raise KeyError(f"no unit known for coefficient {coefficient!r}")
-
-
 def coefficient_row(
     *,
     device_id: str,
@@ -70,39 +45,38 @@ def coefficient_row(
     sensor: str,
     axis: str,
     coefficient: str,
-    value: float,
-    stderr: float,
-    observable: bool,
+    estimate: Coefficient,
     n_plateaus: int,
     n_samples: int,
     method: str,
-    k95: float = 1.959963984540054,
     dof: int | float = np.nan,
     cov_policy: str = "",
     note: str = "",
 ) -> dict:
-    """One COEFFICIENT TABLE row (docs/design.md), with lab-unit conversion and a 95 % interval."""
-    unit, unit_lab, fac, off = units_of(sensor, coefficient)
-    value = float(value) if observable else float("nan")
-    stderr = float(stderr) if observable else float("nan")
+    """One COEFFICIENT TABLE row (docs/design.md) from a :class:`Coefficient`: SI, lab units, 95 % interval."""
+    lab = lab_unit(sensor, coefficient)
+    if estimate.unit != lab.si:
+        raise ValueError(f"{sensor} {coefficient}: estimate in {estimate.unit!r}, the table holds {lab.si!r}")
+    in_lab = estimate.to_lab(lab)
+    lo, hi = estimate.interval()
     return {
         "device_id": device_id,
         "run_id": run_id,
         "sensor": sensor,
         "axis": axis,
         "coefficient": coefficient,
-        "value": value,
-        "stderr": stderr,
-        "unit": unit,
-        "value_lab": fac * value + off,
-        "stderr_lab": abs(fac) * stderr,
-        "unit_lab": unit_lab,
-        "observable": bool(observable),
+        "value": estimate.value,
+        "stderr": estimate.stderr,
+        "unit": estimate.unit,
+        "value_lab": in_lab.value,
+        "stderr_lab": in_lab.stderr,
+        "unit_lab": lab.lab,
+        "observable": bool(estimate.observable),
         "n_plateaus": int(n_plateaus),
         "n_samples": int(n_samples),
         "method": method,
-        "ci95_low": value - k95 * stderr,
-        "ci95_high": value + k95 * stderr,
+        "ci95_low": lo,
+        "ci95_high": hi,
         "dof": dof,
         "cov_policy": cov_policy,
         "note": note,

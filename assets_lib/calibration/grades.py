@@ -1,6 +1,6 @@
 """Plausible coefficient magnitudes per device grade, for quality gates (a coefficient outside is suspect).
 
-Generous envelopes around typical datasheet values (docs effects.md; IEEE 952 / 1293 grade tables): a fit that
+Generous envelopes around typical datasheet values ([IEEE952], [IEEE1431] and [IEEE1293] specification formats): a fit that
 lands outside means a mis-declared unit, a wrong plan or a broken sensor, not a normal device.
 """
 
@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEGPH = np.pi / 180.0 / 3600.0
-MG = 9.80665e-3
+from raw_schemas.units import DEGPH_TO_RADPS as DEGPH, MG_TO_MPS2 as MG
 
 
 @dataclass(frozen=True)

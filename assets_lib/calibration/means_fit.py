@@ -1,11 +1,11 @@
-"""Single-axis fits on tables of plateau means (labs without raw logs): seed 001's rate and tumble fits.
+"""Single-axis fits on tables of plateau means (labs without raw logs): [SEED001]'s rate and tumble fits.
 
-Rate (seed 001 eq. 1-3, seed 003 eq. 3-8): U_j = U0 + K w_j + v_j over commanded rates w_j, by least squares;
+Rate ([SEED001] eq. 1-3, [SEED003] eq. 3-8): U_j = U0 + K w_j + v_j over commanded rates w_j, by least squares;
 nonlinearity (max deviation over the full-scale output, ppm) and asymmetry (K+ vs K-, ppm), each with an
 uncertainty; saturated and wild plateaus excluded automatically and reported.
 
-Tumble (seed 001 eq. 4-7): U = K0 + K1 sin(theta) + K2 sin^2(theta) + K3 sin(theta) cos(theta), the input
-a_i = sin(theta) g and the cross input a_o = cos(theta) g; optionally the IEEE 1293 misalignment term
+Tumble ([SEED001] eq. 4-7): U = K0 + K1 sin(theta) + K2 sin^2(theta) + K3 sin(theta) cos(theta), the input
+a_i = sin(theta) g and the cross input a_o = cos(theta) g; optionally the [IEEE1293] misalignment term
 delta_o cos(theta). Coefficients in the lab's output unit (V, counts, ...) per g and per g^2.
 
 Both use the same engine (:func:`assets_lib.calibration.fit_core.fit_linear`) as the plateau-table fits: identifiability,
@@ -15,30 +15,39 @@ SI (rad/s, rad) inside; coefficients are reported in the lab's units at the edge
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, detect_saturation, fit_linear, ratio_with_stderr
+from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear
 from assets_lib.calibration.rate_fit import compression_note, sweep_asymmetry, sweep_nonlinearity, sweep_screen_columns
-from raw_schemas.units import GYRO_UNITS_TO_RADPS
+from assets_lib.calibration.saturation import detect_saturation
+from assets_lib.coefficient import Coefficient, ratio_with_stderr
+from raw_schemas.units import ANGLE_UNITS_TO_RAD, GYRO_UNITS_TO_RADPS
 
-ANGLE_UNITS_TO_RAD = {"deg": math.pi / 180.0, "rad": 1.0}
 EXCLUSION_MODES = ("auto", "saturation", "flat-top", "none")
 
 
 @dataclass(frozen=True)
-class Coefficient:
+class MeansCoefficient:
+    """A named coefficient of a plateau-means fit, in the lab's units, with its note."""
+
     name: str
-    value: float
-    stderr: float
-    unit: str
-    ci95_low: float
-    ci95_high: float
-    observable: bool = True
+    estimate: Coefficient
     note: str = ""
+
+    value = property(lambda self: self.estimate.value)
+    stderr = property(lambda self: self.estimate.stderr)
+    unit = property(lambda self: self.estimate.unit)
+    observable = property(lambda self: self.estimate.observable)
+    ci95_low = property(lambda self: self.estimate.interval()[0])
+    ci95_high = property(lambda self: self.estimate.interval()[1])
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "value": self.value, "stderr": self.stderr, "unit": self.unit,
+                "ci95_low": self.ci95_low, "ci95_high": self.ci95_high, "observable": self.observable,
+                "note": self.note}
 
 
 @dataclass(frozen=True)
@@ -57,7 +66,7 @@ class MeansFit:
     kind: str  # 'rate' | 'tumble'
     input_unit: str
     output_unit: str
-    coefficients: tuple[Coefficient, ...]
+    coefficients: tuple[MeansCoefficient, ...]
     excluded: tuple[ExcludedPoint, ...]
     residuals: pd.DataFrame
     n_points: int
@@ -68,7 +77,7 @@ class MeansFit:
     fit: LinearFit
     warnings: tuple[str, ...] = field(default=())
 
-    def coefficient(self, name: str) -> Coefficient:
+    def coefficient(self, name: str) -> MeansCoefficient:
         for c in self.coefficients:
             if c.name == name:
                 return c
@@ -94,7 +103,7 @@ class MeansFit:
             "dof": self.dof,
             "residual_rms": clean(self.residual_rms),
             "cov_policy": self.cov_policy,
-            "coefficients": [{k: clean(v) for k, v in c.__dict__.items()} for c in self.coefficients],
+            "coefficients": [{k: clean(v) for k, v in c.as_dict().items()} for c in self.coefficients],
             "excluded": [{k: clean(v) for k, v in e.__dict__.items()} for e in self.excluded],
             "residuals": [{k: clean(v) for k, v in r.items()} for r in res.to_dict(orient="records")],
             "warnings": list(self.warnings),
@@ -102,9 +111,8 @@ class MeansFit:
 
 
 def _coef(fit: LinearFit, name: str, value: float, stderr: float, unit: str, observable: bool = True, note: str = ""):
-    k = fit.k95
-    return Coefficient(name, float(value), float(stderr), unit, float(value - k * stderr), float(value + k * stderr),
-                       bool(observable and np.isfinite(value)), note)
+    est = Coefficient.with_coverage(value, stderr, unit, bool(observable and np.isfinite(value)), fit.k95)
+    return MeansCoefficient(name, est, note)
 
 
 def _exclusions(fit: LinearFit, x_lab, y, sat: dict[int, str]) -> tuple[ExcludedPoint, ...]:
@@ -146,7 +154,7 @@ def fit_rate_means(
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
 ) -> MeansFit:
-    """Seed 001 eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
+    """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
     ``rate`` commanded rates in ``rate_unit`` (deg/s, rad/s, deg/h, mrad/s); ``output`` plateau means in any
     unit; ``sem`` optional standard errors of the means. ``exclusion``: 'auto' (saturation: flat tops and
@@ -188,8 +196,9 @@ def fit_rate_means(
                            note="zero output expressed as input rate, U0/K"))
     nz = np.abs(w) > 0
     nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K)
-    coefs.append(Coefficient("nonlinearity", nl * 1e6, nls * 1e6, "ppm", max(nl - 1.96 * nls, 0.0) * 1e6, (nl + 1.96 * nls) * 1e6,
-                             bool(np.isfinite(nl)),
+    ok = bool(np.isfinite(nl))  # the interval is clipped at zero: nonlinearity is a magnitude
+    est = Coefficient(nl * 1e6, nls * 1e6, "ppm", ok, max(nl - 1.96 * nls, 0.0) * 1e6, (nl + 1.96 * nls) * 1e6)
+    coefs.append(MeansCoefficient("nonlinearity", est,
                              f"max |residual| over full-scale output |K| max|w| = {fs:.6g} {ou}, worst at "
                              f"{at / fac:+.6g} {rate_unit}; noise floor (95 %) {floor * 1e6:.3g} ppm"))
     pre_asym = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
@@ -198,8 +207,8 @@ def fit_rate_means(
     for name, v, s, u in (("scale_factor_pos", kp * fac, sp * fac, f"{ou}/({rate_unit})"),
                           ("scale_factor_neg", kn * fac, sn * fac, f"{ou}/({rate_unit})"),
                           ("asymmetry", asym * 1e6, sasym * 1e6, "ppm")):
-        coefs.append(Coefficient(name, float(v), float(s), u, float(v - kk * s), float(v + kk * s), bool(np.isfinite(v)),
-                                 "hinge fit U = U0 + K w + (dK/2)|w|; asymmetry = (K+ - K-)/mean(K+, K-)"))
+        coefs.append(MeansCoefficient(name, Coefficient.with_coverage(v, s, u, bool(np.isfinite(v)), kk),
+                                      "hinge fit U = U0 + K w + (dK/2)|w|; asymmetry = (K+ - K-)/mean(K+, K-)"))
     rms = float(np.sqrt(np.mean(fit.residual[fit.used] ** 2))) if fit.n_used else float("nan")
     res = _residuals(fit, x_lab, y, f"rate_{rate_unit}")
     return MeansFit("rate", rate_unit, ou, tuple(coefs), _exclusions(fit, x_lab, y, sat), res, len(y), fit.n_used,
@@ -218,7 +227,7 @@ def fit_tumble_means(
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
 ) -> MeansFit:
-    """Seed 001 eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
+    """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
     K0 [output unit], K1 [output unit/g], K2 and K3 [output unit/g^2]; derived: bias K0/K1 [mg], K2/K1 and
     K3/K1 [ug/g^2]; with ``misalignment_term`` also delta_o (cos theta term / K1) [rad]. Coefficients the
@@ -264,8 +273,7 @@ def fit_tumble_means(
             v, se = ratio_with_stderr(fit.value[j], fit.value[k1], C[j, j], C[k1, k1], C[j, k1])
             coefs.append(_coef(fit, out_name, v * fac, se * fac, unit, note=f"{nm}/K1"))
         else:
-            coefs.append(Coefficient(out_name, float("nan"), float("nan"), unit, float("nan"), float("nan"), False,
-                                     f"{nm} or K1 not observable"))
+            coefs.append(MeansCoefficient(out_name, Coefficient.unobservable(unit), f"{nm} or K1 not observable"))
     rms = float(np.sqrt(np.mean(fit.residual[fit.used] ** 2))) if fit.n_used else float("nan")
     res = _residuals(fit, x_lab, y, f"angle_{angle_unit}")
     return MeansFit("tumble", angle_unit, ou, tuple(coefs), _exclusions(fit, x_lab, y, {}), res, len(y), fit.n_used,

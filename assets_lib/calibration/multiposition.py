@@ -1,17 +1,17 @@
 """General least-squares multi-position fits from a PLATEAU TABLE, for any position schedule.
 
-Accelerometer (seed 000 eq. 2, 21-22; seed 003 eq. 10): per axis i, over the static plateaus,
+Accelerometer ([SEED000] eq. 2, 21-22; [SEED003] eq. 10): per axis i, over the static plateaus,
 
     y_i = b_i + a_ii f_i + a_ij f_j + a_ik f_k + K2_i f_i^2 + Kc_ij f_i f_j + Kc_ik f_i f_k
 
 with f = ``f_ref_{x,y,z}_mps2``, K_i = a_ii and E_ij = a_ij / a_ii (design.md model). The design matrix is
-built from each plateau's reference specific force, so one function serves seed 003's 24-position plan,
-seed 000's 8-position-per-axis plan, seed 001's 12-position tumble (K0..K3 = b, K, K2, Kc), a 6-position
+built from each plateau's reference specific force, so one function serves [SEED003]'s 24-position plan,
+[SEED000]'s 8-position-per-axis plan, [SEED001]'s 12-position tumble (K0..K3 = b, K, K2, Kc), a 6-position
 plan, or any other schedule. What the schedule cannot observe (e.g. Kc in a 6-position plan, K2 without a
 horizontal position) is reported ``observable=False`` with a NaN value and the reason, by the prescribed-pivot
 QR of :mod:`assets_lib.calibration.fit_core`.
 
-Gyro biases from the static plateaus (seed 000 eq. 17-20): z_i = y_i - [K_i (e_i + E_i)] . omega_ref, the
+Gyro biases from the static plateaus ([SEED000] eq. 17-20): z_i = y_i - [K_i (e_i + E_i)] . omega_ref, the
 earth-rate projection removed with the rate fit's scale factor and misalignment (or nominal 1 and 0), then
 z_i = b_i [+ G_i . f] by WLS; the rate fit's covariance is propagated into the biases; g-sensitivity G is
 fitted when the schedule observes it (``g_sensitivity='auto'``).
@@ -28,16 +28,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_core import (
-    DEFAULT_ALPHA,
-    DEFAULT_REL_TOL,
-    LinearFit,
-    fit_linear,
-    off_diagonal_matrix,
-    ratio_with_stderr,
-)
+from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear
 from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
-from assets_lib.calibration.rate_fit import AXES, GyroRateFit, select_rows
+from assets_lib.calibration.rate_fit import GyroRateFit, select_rows
+from assets_lib.calibration.triad import AXES, off_diagonal_matrix
+from assets_lib.coefficient import Coefficient, ratio_with_stderr
 
 METHOD_ACCEL = "wls_multiposition"
 METHOD_GYRO = "wls_static_bias_earth_rate_removed"
@@ -53,7 +48,7 @@ def _times(p: pd.DataFrame):
 
 
 def drift_columns(p: pd.DataFrame, order: int) -> tuple[list[np.ndarray], list[str], list[float]]:
-    """Bias drift over the run as polynomial nuisance columns in plateau mid-time (effects.md: bias ramp; the slow
+    """Bias drift over the run as polynomial nuisance columns in plateau mid-time (a bias ramp; the slow
     part of bias instability). Centred and scaled to the run half-span so full excitation is order one."""
     if order <= 0 or "t_start_s" not in p or "t_end_s" not in p:
         return [], [], []
@@ -69,9 +64,11 @@ def _n_samples(p: pd.DataFrame, used: np.ndarray) -> int:
     return int(p.loc[used, "n_samples"].sum()) if "n_samples" in p else 0
 
 
-def _vs(fit: LinearFit, name: str) -> tuple[float, float, bool]:
+def _vs(fit: LinearFit, name: str, unit: str) -> Coefficient:
+    """The fitted column ``name`` as a :class:`Coefficient` with the fit's 95 % coverage factor."""
     k = fit.names.index(name)
-    return float(fit.value[k]), float(np.sqrt(fit.cov[k, k])), bool(fit.observable[k])
+    return Coefficient.with_coverage(float(fit.value[k]), float(np.sqrt(fit.cov[k, k])), unit, bool(fit.observable[k]),
+                                     fit.k95)
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,11 +76,11 @@ class AccelAxisFit:
     axis: str
     fit: LinearFit
     design: np.ndarray
-    scale_factor: tuple  # (value, stderr, observable)
-    bias_mps2: tuple
-    misalignment_rad: dict  # {'y': (v, se, obs)} for E[i, j]
-    k2: tuple  # 1/(m/s^2)
-    cross_coupling: dict  # {'y': (v, se, obs)} Kc[i, j] 1/(m/s^2)
+    scale_factor: Coefficient  # unit "1"
+    bias_mps2: Coefficient
+    misalignment_rad: dict  # {'y': Coefficient} for E[i, j], rad
+    k2: Coefficient  # 1/(m/s^2)
+    cross_coupling: dict  # {'y': Coefficient} Kc[i, j] 1/(m/s^2)
     n_plateaus: int
     n_samples: int
 
@@ -100,11 +97,11 @@ class AccelMultipositionFit:
 
     @property
     def scale_factor(self) -> np.ndarray:
-        return np.array([a.scale_factor[0] for a in self.axes])
+        return np.array([a.scale_factor.value for a in self.axes])
 
     @property
     def bias_mps2(self) -> np.ndarray:
-        return np.array([a.bias_mps2[0] for a in self.axes])
+        return np.array([a.bias_mps2.value for a in self.axes])
 
     @property
     def misalignment_rad(self) -> np.ndarray:
@@ -112,7 +109,7 @@ class AccelMultipositionFit:
 
     @property
     def k2(self) -> np.ndarray:
-        return np.array([a.k2[0] for a in self.axes])
+        return np.array([a.k2.value for a in self.axes])
 
     @property
     def cross_coupling(self) -> np.ndarray:
@@ -123,17 +120,17 @@ class AccelMultipositionFit:
         for ax in self.axes:
             f = ax.fit
             common = dict(device_id=self.device_id, run_id=self.run_id, sensor="accel", axis=ax.axis,
-                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD_ACCEL, k95=f.k95, dof=f.dof,
+                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD_ACCEL, dof=f.dof,
                           cov_policy=f.cov_policy)
             items = [("scale_factor", ax.scale_factor, "scale_factor"), ("bias", ax.bias_mps2, "bias")]
             items += [(f"misalignment_{ax.axis}{a}", v, f"misalignment_{ax.axis}{a}") for a, v in ax.misalignment_rad.items()]
             items += [("k2", ax.k2, "k2")]
             items += [(f"cross_coupling_{ax.axis}{a}", v, f"cross_coupling_{ax.axis}{a}") for a, v in ax.cross_coupling.items()]
-            for name, (v, s, ob), col in items:
+            for name, c, col in items:
                 note = f.unobservable_reason[f.names.index(col)] if col in f.names else "not in the fitted model"
-                if not ob and not note and name.startswith("misalignment_"):
+                if not c.observable and not note and name.startswith("misalignment_"):
                     note = "needs the scale factor of this axis, which the schedule does not observe"
-                rows.append(coefficient_row(coefficient=name, value=v, stderr=s, observable=ob, note=note, **common))
+                rows.append(coefficient_row(coefficient=name, estimate=c, note=note, **common))
         return coefficient_frame(rows)
 
     def residual_table(self) -> pd.DataFrame:
@@ -164,7 +161,7 @@ def fit_accel_multiposition(
     correlated_noise: bool = CORRELATED,
     flicker_b_mps2: np.ndarray | None = None,
 ) -> AccelMultipositionFit:
-    """Seed 000 eq. 21-22 / seed 003 eq. 10: X = (A^T W A)^-1 A^T W Z per accelerometer axis, any schedule.
+    """[SEED000] eq. 21-22 / [SEED003] eq. 10: X = (A^T W A)^-1 A^T W Z per accelerometer axis, any schedule.
 
     Only static plateaus by default (rate plateaus carry centripetal terms the reference does not model).
     K2 and Kc are optional columns: fitted where the schedule separates them, otherwise unobservable.
@@ -220,14 +217,15 @@ def fit_accel_multiposition(
             k = names.index(f"misalignment_{a}{AXES[j]}")
             if fit.observable[k] and fit.observable[ks]:
                 v, s = ratio_with_stderr(fit.value[k], fit.value[ks], fit.cov[k, k], fit.cov[ks, ks], fit.cov[k, ks])
-                mis[AXES[j]] = (v, s, True)
+                mis[AXES[j]] = Coefficient.with_coverage(v, s, "rad", True, fit.k95)
             else:
-                mis[AXES[j]] = (np.nan, np.nan, False)
-        nan3 = (np.nan, np.nan, False)
-        k2 = _vs(fit, "k2") if second_order else nan3
-        kc = {AXES[j]: (_vs(fit, f"cross_coupling_{a}{AXES[j]}") if cross_coupling else nan3) for j in others}
-        axes.append(AccelAxisFit(a, fit, A, _vs(fit, "scale_factor"), _vs(fit, "bias"), mis, k2, kc, fit.n_used,
-                                 _n_samples(p, fit.used)))
+                mis[AXES[j]] = Coefficient.with_coverage(np.nan, np.nan, "rad", False, fit.k95)
+        per_g2 = "1/(m/s^2)"
+        k2 = _vs(fit, "k2", per_g2) if second_order else Coefficient.with_coverage(np.nan, np.nan, per_g2, False, fit.k95)
+        kc = {AXES[j]: (_vs(fit, f"cross_coupling_{a}{AXES[j]}", per_g2) if cross_coupling
+                        else Coefficient.with_coverage(np.nan, np.nan, per_g2, False, fit.k95)) for j in others}
+        axes.append(AccelAxisFit(a, fit, A, _vs(fit, "scale_factor", "1"), _vs(fit, "bias", "m/s^2"), mis, k2, kc,
+                                 fit.n_used, _n_samples(p, fit.used)))
     return AccelMultipositionFit(dev, run, tuple(axes), p)
 
 
@@ -235,8 +233,8 @@ def fit_accel_multiposition(
 class GyroStaticAxisFit:
     axis: str
     fit: LinearFit
-    bias_radps: tuple  # (v, se, obs)
-    g_sensitivity: dict  # {'x': (v, se, obs)} rad/s per m/s^2
+    bias_radps: Coefficient
+    g_sensitivity: dict  # {'x': Coefficient} rad/s per m/s^2
     earth_removed_with: str
     n_plateaus: int
     n_samples: int
@@ -251,21 +249,20 @@ class GyroStaticFit:
 
     @property
     def bias_radps(self) -> np.ndarray:
-        return np.array([a.bias_radps[0] for a in self.axes])
+        return np.array([a.bias_radps.value for a in self.axes])
 
     def coefficient_table(self) -> pd.DataFrame:
         rows = []
         for ax in self.axes:
             f = ax.fit
             common = dict(device_id=self.device_id, run_id=self.run_id, sensor="gyro", axis=ax.axis,
-                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD_GYRO, k95=f.k95, dof=f.dof,
+                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD_GYRO, dof=f.dof,
                           cov_policy=f.cov_policy)
-            v, s, ob = ax.bias_radps
-            rows.append(coefficient_row(coefficient="bias", value=v, stderr=s, observable=ob,
+            rows.append(coefficient_row(coefficient="bias", estimate=ax.bias_radps,
                                         note=f"earth rate removed with {ax.earth_removed_with}", **common))
-            for a, (v, s, ob) in ax.g_sensitivity.items():
+            for a, c in ax.g_sensitivity.items():
                 k = f.names.index(f"g_sensitivity_{a}")
-                rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", value=v, stderr=s, observable=ob,
+                rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", estimate=c,
                                             note=f.unobservable_reason[k], **common))
         return coefficient_frame(rows)
 
@@ -292,7 +289,7 @@ def fit_gyro_static(
     use_flagged: bool = False,
     correlated_noise: bool = True,
 ) -> GyroStaticFit:
-    """Seed 000 eq. 17-20: gyro biases from static positions with the earth-rate projection removed.
+    """[SEED000] eq. 17-20: gyro biases from static positions with the earth-rate projection removed.
 
     The reference ``omega_ref_*`` (= ``omega_earth_*`` for static plateaus) is mapped through the rate fit's
     [K_i (e_i + E_i)] rows (their covariance propagated), or through the given ``scale_factor`` /
@@ -343,6 +340,6 @@ def fit_gyro_static(
             cov = fit.cov.copy()
             cov[np.ix_(obs, obs)] += PW @ Cm @ PW.T
             fit = replace(fit, cov=cov)
-        gs = {AXES[j]: _vs(fit, f"g_sensitivity_{AXES[j]}") for j in range(3)} if use_g else {}
-        out.append(GyroStaticAxisFit(a, fit, _vs(fit, "bias"), gs, src, fit.n_used, _n_samples(p, fit.used)))
+        gs = {AXES[j]: _vs(fit, f"g_sensitivity_{AXES[j]}", "rad/s/(m/s^2)") for j in range(3)} if use_g else {}
+        out.append(GyroStaticAxisFit(a, fit, _vs(fit, "bias", "rad/s"), gs, src, fit.n_used, _n_samples(p, fit.used)))
     return GyroStaticFit(dev, run, tuple(out), p)

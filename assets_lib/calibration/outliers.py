@@ -1,6 +1,6 @@
-"""Outlier rejection on plateaus by polynomial residuals (seed 001), with a robust, iterated threshold.
+"""Outlier rejection on plateaus by polynomial residuals ([SEED001]), with a robust, iterated threshold.
 
-Seed 001 fits, per plateau, a degree-7 polynomial against the sample index (``polyfit(x1, x2, 7)``), keeps the
+[SEED001] fits, per plateau, a degree-7 polynomial against the sample index (``polyfit(x1, x2, 7)``), keeps the
 samples whose residual is inside a fixed band (``abs(x3 - x2) < 0.005`` V) and averages them. Here the band is
 not fixed in sensor units but ``k`` robust standard deviations of the residual (1.4826 x MAD), the polynomial
 is refitted on the kept samples, and both steps repeat until the kept set no longer changes (a borderline sample
@@ -8,7 +8,7 @@ that flips in and out on alternate passes is rejected).
 
 Defaults and why:
 
-* ``degree = 7`` (seed 001). The polynomial only has to absorb the slow, low-frequency part of a plateau
+* ``degree = 7`` ([SEED001]). The polynomial only has to absorb the slow, low-frequency part of a plateau
   (warm-up, bias wander) so that the MAD measures the sample-to-sample noise. On the [-1, 1]-mapped time axis
   (Legendre basis) degree 7 is well conditioned, and it removes 8 degrees of freedom from windows of thousands
   of samples (residual variance shrinks by 8/n, negligible). On short windows the degree is capped so every
@@ -20,6 +20,15 @@ Defaults and why:
   glitches" (a knock, a slipping fixture, a wrong threshold): it is flagged with a reason, never silently used.
 * Quantized data: the MAD of a channel whose noise is below one count collapses to zero. The robust sigma is
   therefore floored at the quantization step (``resolution``), estimated from the data when not given.
+* Quantized *and interpolated* data (a slow accelerometer linearly interpolated to the gyro rate): most samples
+  sit on one level and the rest between levels, so the MAD collapses, and the gaps between distinct values are
+  fractions of a count (or round-off) that say nothing about the quantizer. Any spread estimator robust to a
+  10 % contamination must collapse when 90 % of the samples share one value, so the floor has to be the
+  *source* quantum: it is read from the values that repeat on consecutive samples (linear interpolation
+  between two equal source samples returns that level; between different ones it produces values that do not
+  repeat), and gaps below 1e-9 of the values' magnitude are round-off, not levels. Measured: a 0.3-count
+  noise quantized at 27 Hz and interpolated to 100 Hz lost 33 % of its samples with the value-gap estimate,
+  0 % with the repeated-level estimate.
 """
 
 from __future__ import annotations
@@ -73,15 +82,36 @@ class OutlierResult:
 
 
 def estimate_resolution(values: np.ndarray, rel_tol: float = 1e-3) -> float | None:
-    """Quantization step of a channel: the smallest gap between distinct values, if all gaps are multiples of it."""
+    """Quantization step of a channel: the smallest gap between distinct values, if all gaps are multiples of it;
+    for interpolated streams, the step between the levels that repeat on consecutive samples (module docstring),
+    when that is larger."""
     v = np.asarray(values, dtype=float)
     v = v[np.isfinite(v)]
     if v.size < 3:
         return None
+    q_all = _level_step(v, rel_tol, require_repeats=True)
+    rep = v[:-1][v[1:] == v[:-1]]
+    if rep.size:
+        lev, cnt = np.unique(rep, return_counts=True)
+        rep = lev[cnt >= max(3, 0.005 * rep.size)]  # levels, not the odd coincidence of two interpolated values
+    q_rep = _level_step(rep, rel_tol, require_repeats=False) if rep.size >= 2 else None
+    if q_rep is not None and (q_all is None or q_rep > q_all):
+        return q_rep
+    if q_rep is None and rep.size == 1 and np.mean(v == rep[0]) >= 0.5:  # one dominant repeated level: interpolated values lie between it and its neighbours
+        d = np.abs(v[v != rep[0]] - rep[0])
+        if d.size >= 10 and (q_all is None or q_all < 0.25 * np.median(d)):
+            return float(2.0 * np.median(d))  # uniform on (0, q) between the level and the next one: median q / 2
+    return q_all
+
+
+def _level_step(v: np.ndarray, rel_tol: float, require_repeats: bool) -> float | None:
     u = np.unique(v)
-    if u.size < 2 or u.size > v.size // 2:
+    if u.size < 2 or (require_repeats and u.size > v.size // 2):
         return None  # (nearly) every value distinct: not a quantized stream
     d = np.diff(u)
+    d = d[d > 1e-9 * max(float(np.max(np.abs(u))), float(u[-1] - u[0]))]  # round-off is not a level gap
+    if d.size == 0:
+        return None
     q = float(d.min())
     if q <= 0:
         return None
@@ -102,7 +132,7 @@ def reject_outliers_window(
     config: OutlierConfig = OutlierConfig(),
     resolution=None,
 ) -> WindowOutliers:
-    """Seed 001 (polyfit residual band), robust form: keep |y - p(t)| < k * 1.4826 MAD, refit, iterate to a fixed point.
+    """[SEED001] (polyfit residual band), robust form: keep |y - p(t)| < k * 1.4826 MAD, refit, iterate to a fixed point.
 
     ``values`` is (n,) or (n, c); a sample is kept only if every channel keeps it. ``resolution`` (scalar or one per
     channel, same units as ``values``) floors the robust sigma for quantized data; None estimates it per channel.
@@ -184,7 +214,7 @@ def reject_outliers(
     config: OutlierConfig = OutlierConfig(),
     resolution=None,
 ) -> OutlierResult:
-    """Seed 001 per plateau: :func:`reject_outliers_window` on every plateau id >= 0 (samples with id -1 are not kept).
+    """[SEED001] per plateau: :func:`reject_outliers_window` on every plateau id >= 0 (samples with id -1 are not kept).
 
     Returns the global keep mask and a summary with one row per plateau: ``plateau, n_samples, n_rejected,
     rejected_fraction, degree_used, iterations, flagged, flag_reason``. ``resolution`` as in the window function;

@@ -1,16 +1,16 @@
 """Gyro rate fit from a PLATEAU TABLE: scale factor, bias, misalignment, nonlinearity, asymmetry.
 
-Model (docs/design.md, seed 000 eq. 1): y_i = K_i (omega_i + sum_j E_ij omega_j) + b_i [+ G_i . f] + n, per
+Model (docs/design.md, [SEED000] eq. 1): y_i = K_i (omega_i + sum_j E_ij omega_j) + b_i [+ G_i . f] + n, per
 gyro axis i, with ``omega`` the reference input ``omega_ref_{x,y,z}_radps`` (table rate plus the modelled earth
 rate). It is linear in a_ii = K_i, a_ij = K_i E_ij and b_i, and is fitted per axis by weighted least squares
-over the plateaus (seed 003 eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
+over the plateaus ([SEED003] eq. 3, x = (A^T A)^-1 A^T b, weights 1/sem^2); E_ij = a_ij / a_ii by the delta
 method. Misalignment is observable only when the plateaus excite the other axes (rate tests about all three
-body axes, seed 000 eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
+body axes, [SEED000] eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
 identifiability rule, the exclusion tests and the covariance policy.
 
-Also: scale-factor nonlinearity (seed 003: max deviation from the fitted line over the full-scale output),
-asymmetry (K+ vs K-, IEEE 952 / seed 003) with uncertainties, automatic exclusion of saturated and wild
-plateaus with reasons, and seed 000's +/- full-revolution difference method (eq. 9-13) as a cross-check.
+Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted line over the full-scale output),
+asymmetry (K+ vs K-, [IEEE952] / [SEED003]) with uncertainties, automatic exclusion of saturated and wild
+plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a cross-check.
 
 g-sensitivity enters as centred nuisance columns: the bias shifts between the rate tests' orientations (G f)
 are absorbed even when G is not separable from the bias, and the bias is then reported at the schedule's mean
@@ -25,25 +25,14 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
+from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear
+from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_rate_residuals_png, residual_frame
+from assets_lib.calibration.saturation import detect_saturation
+from assets_lib.calibration.triad import AXES, off_diagonal_matrix
+from assets_lib.coefficient import Z95, Coefficient, ratio_with_stderr
 from assets_lib.sim.earth import EARTH_RATE_RADPS
-from assets_lib.calibration.fit_core import (
-    DEFAULT_ALPHA,
-    DEFAULT_REL_TOL,
-    LinearFit,
-    detect_saturation,
-    fit_linear,
-    off_diagonal_matrix,
-    ratio_with_stderr,
-)
-from assets_lib.calibration.fit_report import (
-    RADPS_TO_DEGPS,
-    coefficient_frame,
-    coefficient_row,
-    plot_rate_residuals_png,
-    residual_frame,
-)
+from raw_schemas.units import RADPS_TO_DEGPS
 
-AXES = ("x", "y", "z")
 METHOD = "wls_rate_fit"
 METHOD_DIFF = "seed000_full_revolution_difference"
 _NC_RNG_SEED = 952  # fixed seed: the nonlinearity noise floor is a deterministic function of the design
@@ -108,7 +97,7 @@ def compression_note(x: np.ndarray, sweep: np.ndarray, saturated: dict[int, str]
 
 
 def sweep_screen_columns(x: np.ndarray, rows: np.ndarray, min_magnitudes: int = 5) -> np.ndarray | None:
-    """Nuisance regressors |w|, w^2, w^3 on the sweep rows, for the outlier screen only (effects.md signatures of
+    """Nuisance regressors |w|, w^2, w^3 on the sweep rows, for the outlier screen only (the signatures of
     asymmetry and nonlinearity); None when the sweep has fewer than ``min_magnitudes`` distinct |rates|."""
     mags = np.unique(np.round(np.abs(x[rows]), 12))
     if np.sum(mags > 0) < min_magnitudes:
@@ -119,25 +108,21 @@ def sweep_screen_columns(x: np.ndarray, rows: np.ndarray, min_magnitudes: int = 
 
 @dataclass(frozen=True, eq=False)
 class SweepStats:
-    """Seed 003 eq. 4-8: nonlinearity and asymmetry of one axis' rate sweep (ratios; ppm at the report edge)."""
+    """[SEED003] eq. 4-8: nonlinearity and asymmetry of one axis' rate sweep (ratios; ppm at the report edge)."""
 
-    nonlinearity: float
-    nonlinearity_stderr: float
+    nonlinearity: Coefficient  # max |residual| / full-scale output (unit "1"); unobservable below two plateaus
     nonlinearity_floor: float  # 95 % quantile of the statistic under pure noise (detection limit)
     nonlinearity_at_input: float  # input of the worst plateau
     full_scale_output: float
     n_sweep: int
-    k_pos: float
-    k_pos_stderr: float
-    k_neg: float
-    k_neg_stderr: float
-    asymmetry: float  # (K+ - K-) / mean(K+, K-)
-    asymmetry_stderr: float
+    k_pos: Coefficient  # scale factor on positive inputs (hinge fit)
+    k_neg: Coefficient
+    asymmetry: Coefficient  # (K+ - K-) / mean(K+, K-)
     asymmetry_fit: LinearFit | None
 
 
 def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.ndarray, gain: float):
-    """Seed 003 eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
+    """[SEED003] eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
 
     Standard error: the standard deviation of the worst residual (plateau sems, or the residual scatter when
     no sems are given). Noise floor: the 95 % quantile of the same statistic when the only deviation is the
@@ -176,8 +161,8 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     """Asymmetry by a hinge term: y = ... + Kbar w + (dK/2)|w| (shared bias); K+- = Kbar +- dK/2.
 
     One fit with a common bias rather than two separate line fits: the bias is anchored by both signs and the
-    zero-rate plateaus (IEEE 952: asymmetry = difference of the positive- and negative-input scale factors
-    relative to their mean). Note (effects.md): an even nonlinearity (w^2) aliases into |w|.
+    zero-rate plateaus ([IEEE952]: asymmetry = difference of the positive- and negative-input scale factors
+    relative to their mean). Note: an even nonlinearity (w^2) aliases into |w|.
     """
     Ah = np.column_stack([A[:, : main_col + 1], np.abs(x_main), A[:, main_col + 1 :]])
     nh = tuple(names[: main_col + 1]) + ("sf_asymmetry_term",) + tuple(names[main_col + 1 :])
@@ -208,12 +193,10 @@ class GyroAxisRateFit:
     axis: str
     fit: LinearFit
     design: np.ndarray
-    scale_factor: float
-    scale_factor_stderr: float
-    bias_radps: float
-    bias_stderr_radps: float
-    misalignment_rad: dict  # {'y': (value, stderr, observable)} for E[i, j]
-    g_sensitivity: dict  # {'x': (value, stderr, observable)} rad/s per m/s^2
+    scale_factor: Coefficient  # unit "1"
+    bias_radps: Coefficient
+    misalignment_rad: dict  # {'y': Coefficient} for E[i, j], rad
+    g_sensitivity: dict  # {'x': Coefficient} rad/s per m/s^2
     sweep: SweepStats
     saturated: dict  # {row: reason}
     n_plateaus: int
@@ -243,7 +226,7 @@ class GyroAxisRateFit:
 
 @dataclass(frozen=True, eq=False)
 class DifferenceCheck:
-    """Seed 000 eq. 9-13: M = diag(K)(I + E) from +/- plateau pairs at equal |rate| (bias and vertical earth
+    """[SEED000] eq. 9-13: M = diag(K)(I + E) from +/- plateau pairs at equal |rate| (bias and vertical earth
     rate cancel in the difference; horizontal earth rate averages out over whole revolutions)."""
 
     fits: tuple  # per output axis LinearFit of dy_i = sum_j M_ij dw_j
@@ -269,11 +252,11 @@ class GyroRateFit:
 
     @property
     def scale_factor(self) -> np.ndarray:
-        return np.array([ax.scale_factor for ax in self.axes])
+        return np.array([ax.scale_factor.value for ax in self.axes])
 
     @property
     def bias_radps(self) -> np.ndarray:
-        return np.array([ax.bias_radps for ax in self.axes])
+        return np.array([ax.bias_radps.value for ax in self.axes])
 
     @property
     def misalignment_rad(self) -> np.ndarray:
@@ -284,42 +267,39 @@ class GyroRateFit:
         for ax in self.axes:
             f = ax.fit
             common = dict(device_id=self.device_id, run_id=self.run_id, sensor="gyro", axis=ax.axis,
-                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD, k95=f.k95, dof=f.dof,
+                          n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD, dof=f.dof,
                           cov_policy=f.cov_policy)
             k = f.names.index("scale_factor")
-            rows.append(coefficient_row(coefficient="scale_factor", value=ax.scale_factor, stderr=ax.scale_factor_stderr,
-                                        observable=bool(f.observable[k]), note=f.unobservable_reason[k], **common))
+            rows.append(coefficient_row(coefficient="scale_factor", estimate=ax.scale_factor,
+                                        note=f.unobservable_reason[k], **common))
             k = f.names.index("bias")
             bnote = f.unobservable_reason[k]
             if ax.bias_reference_force_mps2 is not None:
                 fb = ", ".join(f"{v:.3f}" for v in ax.bias_reference_force_mps2)
                 bnote = (f"bias at the schedule's mean specific force f_bar = [{fb}] m/s^2: b + G f_bar (g-sensitivity "
                          "not separable from the bias in this schedule; see the static multi-position fit)")
-            rows.append(coefficient_row(coefficient="bias", value=ax.bias_radps, stderr=ax.bias_stderr_radps,
-                                        observable=bool(f.observable[k]), note=bnote, **common))
-            for a, (v, s, ob) in ax.misalignment_rad.items():
+            rows.append(coefficient_row(coefficient="bias", estimate=ax.bias_radps, note=bnote, **common))
+            for a, c in ax.misalignment_rad.items():
                 k = f.names.index(f"misalignment_{ax.axis}{a}")
-                note = f.unobservable_reason[k] or ("" if ob else "needs the scale factor of this axis, which the "
-                                                                  "schedule does not observe")
-                rows.append(coefficient_row(coefficient=f"misalignment_{ax.axis}{a}", value=v, stderr=s, observable=ob,
-                                            note=note, **common))
-            for a, (v, s, ob) in ax.g_sensitivity.items():
+                note = f.unobservable_reason[k] or ("" if c.observable else "needs the scale factor of this axis, "
+                                                                            "which the schedule does not observe")
+                rows.append(coefficient_row(coefficient=f"misalignment_{ax.axis}{a}", estimate=c, note=note, **common))
+            for a, c in ax.g_sensitivity.items():
                 k = f.names.index(f"g_sensitivity_{a}")
-                rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", value=v, stderr=s, observable=ob,
+                rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", estimate=c,
                                             note=f.unobservable_reason[k], **common))
             sw = ax.sweep
-            ok = np.isfinite(sw.nonlinearity)
+            ok = sw.nonlinearity.observable
             rows.append(coefficient_row(
-                coefficient="sf_nonlinearity", value=sw.nonlinearity, stderr=sw.nonlinearity_stderr, observable=bool(ok),
+                coefficient="sf_nonlinearity", estimate=sw.nonlinearity,
                 note=(f"max |residual| / full-scale output {sw.full_scale_output:.6g} rad/s over {sw.n_sweep} plateaus, "
                       f"worst at {sw.nonlinearity_at_input * RADPS_TO_DEGPS:+.6g} deg/s; noise floor (95 %) "
                       f"{sw.nonlinearity_floor * 1e6:.3g} ppm") if ok else "fewer than two sweep plateaus",
-                **{**common, "k95": 1.959963984540054}))
-            ok = np.isfinite(sw.asymmetry)
-            for name, v, s in (("scale_factor_pos", sw.k_pos, sw.k_pos_stderr),
-                               ("scale_factor_neg", sw.k_neg, sw.k_neg_stderr),
-                               ("sf_asymmetry", sw.asymmetry, sw.asymmetry_stderr)):
-                rows.append(coefficient_row(coefficient=name, value=v, stderr=s, observable=bool(ok),
+                **common))
+            ok = sw.asymmetry.observable
+            for name, c in (("scale_factor_pos", sw.k_pos), ("scale_factor_neg", sw.k_neg),
+                            ("sf_asymmetry", sw.asymmetry)):
+                rows.append(coefficient_row(coefficient=name, estimate=c,
                                             note="" if ok else "needs plateaus of both signs on this axis", **common))
         return coefficient_frame(rows)
 
@@ -338,18 +318,20 @@ class GyroRateFit:
         return r[r["excluded"]][["device_id", "run_id", "step_index", "sensor", "axis", "input_value", "reason"]]
 
     def cross_check_table(self) -> pd.DataFrame:
-        """Main fit vs seed 000 difference method; z uses sqrt(se_diff^2 - se_fit^2) (the difference estimator
-        is a less efficient linear estimator on a subset of the same data, Hausman 1978)."""
+        """Main fit vs [SEED000] difference method; z uses sqrt(se_diff^2 - se_fit^2) (the difference estimator
+        is a less efficient linear estimator on a subset of the same data, [HAUSMAN1978])."""
         if self.difference is None:
             return pd.DataFrame()
         d = self.difference
         rows = []
         for i, ax in enumerate(self.axes):
-            items = [("scale_factor", ax.scale_factor, ax.scale_factor_stderr, d.scale_factor[i], d.scale_factor_stderr[i])]
+            sf = ax.scale_factor
+            items = [("scale_factor", sf.value, sf.stderr, d.scale_factor[i], d.scale_factor_stderr[i])]
             for j, a in enumerate(AXES):
                 if j != i:
-                    v, s, _ = ax.misalignment_rad[a]
-                    items.append((f"misalignment_{ax.axis}{a}", v, s, d.misalignment[i, j], d.misalignment_stderr[i, j]))
+                    c = ax.misalignment_rad[a]
+                    items.append((f"misalignment_{ax.axis}{a}", c.value, c.stderr, d.misalignment[i, j],
+                                  d.misalignment_stderr[i, j]))
             for name, vf, sf, vd, sd in items:
                 dv = sd**2 - sf**2
                 rows.append(dict(axis=ax.axis, coefficient=name, value_fit=vf, stderr_fit=sf, value_difference=vd,
@@ -426,16 +408,17 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
         k = names.index(nm)
         if fit.observable[k] and fit.observable[ks]:
             v, s = ratio_with_stderr(fit.value[k], fit.value[ks], fit.cov[k, k], fit.cov[ks, ks], fit.cov[k, ks])
-            mis[AXES[j]] = (v, s, True)
+            mis[AXES[j]] = Coefficient.with_coverage(v, s, "rad", True, fit.k95)
         else:
-            mis[AXES[j]] = (np.nan, np.nan, False)
+            mis[AXES[j]] = Coefficient.with_coverage(np.nan, np.nan, "rad", False, fit.k95)
     gs = {}
     bias_force = None
     if use_g:
         kg = [names.index(f"g_sensitivity_{AXES[j]}") for j in range(3)]
         full = bool(np.all(fit.observable[kg]))
         for j, k in enumerate(kg):
-            gs[AXES[j]] = (float(fit.value[k]), float(np.sqrt(fit.cov[k, k])), True) if full else (np.nan, np.nan, False)
+            gs[AXES[j]] = Coefficient.with_coverage(float(fit.value[k]), float(np.sqrt(fit.cov[k, k])), "rad/s/(m/s^2)",
+                                                    full, fit.k95)
         kb = names.index("bias")
         if full:
             # b = b_bar - G f_bar
@@ -453,9 +436,15 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
                                                       nuisance)
     if not np.isfinite(asym):
         fa = None
-    st = SweepStats(nl, nls, floor, at, fs, nsw, kp, sp, kn, sn, asym, sasym, fa)
+    ok_nl, ok_asym = bool(np.isfinite(nl)), bool(np.isfinite(asym))
+    st = SweepStats(Coefficient.with_coverage(nl, nls, "1", ok_nl, Z95), floor, at, fs, nsw,
+                    Coefficient.with_coverage(kp, sp, "1", ok_asym, fit.k95),
+                    Coefficient.with_coverage(kn, sn, "1", ok_asym, fit.k95),
+                    Coefficient.with_coverage(asym, sasym, "1", ok_asym, fit.k95), fa)
+    kb = names.index("bias")
     return GyroAxisRateFit(
-        axis=a, fit=fit, design=A, scale_factor=K, scale_factor_stderr=sK, bias_radps=b, bias_stderr_radps=sb,
+        axis=a, fit=fit, design=A, scale_factor=Coefficient.with_coverage(K, sK, "1", bool(fit.observable[ks]), fit.k95),
+        bias_radps=Coefficient.with_coverage(b, sb, "rad/s", bool(fit.observable[kb]), fit.k95),
         misalignment_rad=mis, g_sensitivity=gs, sweep=st, saturated=sat, n_plateaus=fit.n_used,
         n_samples=_n_samples(p, fit.used), bias_reference_force_mps2=bias_force,
     )
@@ -463,7 +452,7 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
 
 def difference_method(p: pd.DataFrame, excluded: list[np.ndarray] | None = None, *, rel_tol=DEFAULT_REL_TOL,
                       sigma_ok: bool = True) -> DifferenceCheck | None:
-    """Seed 000 eq. 9-13 from plateau means: pair +w and -w plateaus about the same axis at the same |rate|.
+    """[SEED000] eq. 9-13 from plateau means: pair +w and -w plateaus about the same axis at the same |rate|.
 
     For each pair, dy = y(+) - y(-) = M (w(+) - w(-)) (bias, g-sensitivity and the vertical earth rate cancel);
     per output axis i a no-intercept least squares dy_i = sum_j M_ij dw_j over the pairs gives K_i = M_ii and
@@ -545,7 +534,7 @@ def fit_gyro_rate(
     cross_check: bool = True,
     correlated_noise: bool = True,
 ) -> GyroRateFit:
-    """Seed 003 eq. 3 / seed 000 eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
+    """[SEED003] eq. 3 / [SEED000] eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
 
     ``plateaus``: PLATEAU TABLE rows (kind 'rate', plus 'static' when ``include_static``) of one device and
     run. Flagged rows are excluded (reason kept) unless ``use_flagged``. ``g_sensitivity='auto'`` adds

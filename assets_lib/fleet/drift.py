@@ -6,7 +6,7 @@ time): x_i = mu + beta t_i + e_i, e_i ~ N(0, sigma_i^2) independent, with
     sigma_i^2 = sigma_turnon^2 + se_i^2
 
 where se_i is the run's own standard error (the fit's ``stderr``) and sigma_turnon the device's turn-on to
-turn-on scatter, i.e. the noise-corrected bias / scale-factor repeatability (seed 000 eq. 23, GJB 2426A B_r,
+turn-on scatter, i.e. the noise-corrected bias / scale-factor repeatability ([SEED000] eq. 23, [GJB2426A] B_r,
 ``assets_lib.calibration.repeatability``: sqrt(max(0, s^2 - rms(se)^2))). A run estimate scatters about the device's mean
 by both, independently, so their variances add. This is never smaller than the larger of the repeatability
 standard deviation and the run's stderr, the usual rule of thumb for control limits (it is the quadrature form of
@@ -18,27 +18,25 @@ column says so: ``sigma_source``).
 Per series:
 - Trend: weighted least squares line (weights 1/sigma_i^2, sigma_i treated as known), slope per day with its
   standard error and a normal (z) confidence interval; the fitted line with its confidence band at every run;
-  chi^2 of the line as a consistency diagnostic (Birge ratio; Cox 2002, Metrologia 39:589).
-- Control limits (Shewhart chart, Montgomery, Introduction to Statistical Quality Control, 7th ed., 2013,
-  sec. 6.4, individuals chart): centre = the weighted mean of the series, limits centre +/- 3 sigma_i. A run
-  outside them is marked ``beyond_limits`` (probability 0.27 % per in-control run).
+  chi^2 of the line as a consistency diagnostic (Birge ratio; [COX2002]).
+- Control limits (Shewhart individuals chart, [MONTGOMERY2013] sec. 6.4): centre = the weighted mean of the
+  series, limits centre +/- 3 sigma_i. A run outside them is marked ``beyond_limits`` (probability 0.27 % per in-control run).
 - Drift beyond limits: the fitted trend's excursion over the series, D = beta (t_last - t_first), is flagged when
   it is both significant, |D| / se(D) > z_drift (default 3, two-sided alpha = 0.27 %), and beyond the control
   band, |D| > limit_sigma * sigma (default 3 sigma, sigma = RMS of sigma_i): the coefficient has moved since
   the device's first run by more than the turn-on scatter allows, and the move is not noise. Designed false-alarm
   probability per in-control series: P(|Z| > max(z_drift, limit_sigma sigma / se(D))) <= 0.27 %
   (:func:`drift_false_alarm_probability`).
-- Abrupt shift: a two-sided tabular CUSUM (Montgomery 2013 sec. 9.1.2; NIST/SEMATECH e-Handbook of Statistical
-  Methods, sec. 6.3.2.3) on self-starting standardized residuals u_i = (x_i - m_{i-1}) / sqrt(sigma_i^2 + v_{i-1})
-  with m_{i-1}, v_{i-1} the weighted mean of the earlier runs and its variance (Hawkins 1987, Technometrics
-  29:319, self-starting CUSUM): with known sigma_i the u_i are independent N(0, 1) when the device is in
-  control, so the chart's false-alarm probability over a short series is computable exactly. Reference value
+- Abrupt shift: a two-sided tabular CUSUM ([MONTGOMERY2013] sec. 9.1.2; [NISTHB] sec. 6.3.2.3) on self-starting
+  standardized residuals u_i = (x_i - m_{i-1}) / sqrt(sigma_i^2 + v_{i-1}) with m_{i-1}, v_{i-1} the weighted mean
+  of the earlier runs and its variance ([HAWKINS1987], self-starting CUSUM): with known sigma_i the u_i are
+  independent N(0, 1) when the device is in control, so the chart's false-alarm probability over a short series is computable exactly. Reference value
   k = 0.5 (optimal for a 1 sigma shift) and decision interval h = 5: two-sided in-control ARL 465 runs,
-  out-of-control ARL 10.4 / 4.0 / 2.6 runs for a 1 / 2 / 3 sigma shift (Montgomery 2013, Table 9.3). h = 5
+  out-of-control ARL 10.4 / 4.0 / 2.6 runs for a 1 / 2 / 3 sigma shift ([MONTGOMERY2013] Table 9.3). h = 5
   rather than h = 4 (ARL0 168) because a fleet holds hundreds of series and every alarm is a warning to a person.
-  The probability of an alarm within n - 1 residuals is computed by the Brook & Evans (1972, Biometrika 59:539)
+  The probability of an alarm within n - 1 residuals is computed by the [BROOK1972]
   Markov chain (:func:`cusum_false_alarm_probability`). After an alarm the run where the change happened is
-  the maximum-likelihood change point of a single step (Hinkley 1970, Biometrika 57:1), i.e. the split with
+  the maximum-likelihood change point of a single step ([HINKLEY1970]), i.e. the split with
   the smallest weighted residual sum of squares, and the series is called an abrupt *shift* when that step
   model fits better than the straight line by more than ``shift_penalty`` (chi^2 units; default ln n, the BIC
   price of the change point's location), otherwise a *drift*. A series is flagged at most once: 'shift' or
@@ -46,7 +44,7 @@ Per series:
 
 Where sigma_turnon comes from (``sigma_source``):
 - 'repeatability': the repeatability was measured on other runs than the series (a qualification set,
-  Montgomery's phase I): sigma is known, the rules above have their designed rates exactly.
+  [MONTGOMERY2013] phase I): sigma is known, the rules above have their designed rates exactly.
 - 'repeatability, detrended (in-sample)': the repeatability stage computed it over the very runs being monitored
   (the pipeline's case). Used as is, a drift would inflate it and hide itself: a linear drift D over Q equally
   spaced runs adds D^2 (Q + 1) / (12 (Q - 1)) to s^2, so |D| / s can never exceed sqrt(12 (Q - 1) / (Q + 1))
@@ -129,7 +127,7 @@ class TrendFit:
 
 
 def weighted_trend(t_days, x, sigma, confidence: float = 0.95, sigma_dof: float | None = None) -> TrendFit:
-    """Weighted least squares line (Cox 2002, Metrologia 39:589): b = S_tx/S_tt with W = 1/sigma^2, var(b) = 1/S_tt;
+    """Weighted least squares line ([COX2002]): b = S_tx/S_tt with W = 1/sigma^2, var(b) = 1/S_tt;
     z interval for known sigma, Student-t(sigma_dof) interval when sigma was estimated from the residuals."""
     t = np.asarray(t_days, float)
     x = np.asarray(x, float)
@@ -166,7 +164,7 @@ def _z_two_sided(confidence: float) -> float:
 
 def drift_false_alarm_probability(excursion_stderr: float, sigma: float, z_drift: float = 3.0,
                                   limit_sigma: float = 3.0, sigma_dof: float | None = None) -> float:
-    """Montgomery 2013 sec. 6.2.2 (alpha of a 3-sigma rule): P(|Z| > max(z_drift, limit_sigma sigma / se(D))) for
+    """[MONTGOMERY2013] sec. 6.2.2 (alpha of a 3-sigma rule): P(|Z| > max(z_drift, limit_sigma sigma / se(D))) for
     known sigma; with an estimated sigma the bound alpha = P(|Z| > z_drift) of the t test (the band term is random)."""
     if sigma_dof is not None:
         return math.erfc(z_drift / math.sqrt(2.0))
@@ -182,7 +180,7 @@ def drift_threshold(z_drift: float, sigma_dof: float | None) -> float:
 
 
 def detrended_turn_on_sigma(t_days, x, stderrs) -> tuple[float, int]:
-    """Repeatability about the fitted line (seed 000 eq. 23 with the trend removed), noise-corrected:
+    """Repeatability about the fitted line ([SEED000] eq. 23 with the trend removed), noise-corrected:
     sqrt(max(0, RSS_ols / (n - 2) - mean(se^2))), and its degrees of freedom n - 2."""
     t = np.asarray(t_days, float)
     x = np.asarray(x, float)
@@ -197,7 +195,7 @@ def detrended_turn_on_sigma(t_days, x, stderrs) -> tuple[float, int]:
 
 
 def self_starting_residuals(x, sigma) -> np.ndarray:
-    """Hawkins 1987 (Technometrics 29:319), known sigma: u_i = (x_i - m_{i-1}) / sqrt(sigma_i^2 + v_{i-1}); u_0 = NaN."""
+    """[HAWKINS1987], known sigma: u_i = (x_i - m_{i-1}) / sqrt(sigma_i^2 + v_{i-1}); u_0 = NaN."""
     x = np.asarray(x, float)
     s2 = np.asarray(sigma, float) ** 2
     w = 1.0 / s2
@@ -222,7 +220,7 @@ class CusumResult:
 
 
 def tabular_cusum(z, k: float = 0.5, h: float = 5.0) -> CusumResult:
-    """Montgomery 2013 eq. 9.2-9.3 (NIST e-Handbook 6.3.2.3): C+_i = max(0, z_i - k + C+_{i-1}), C-_i = max(0, -z_i - k + C-_{i-1})."""
+    """[MONTGOMERY2013] eq. 9.2-9.3 (NIST e-Handbook 6.3.2.3): C+_i = max(0, z_i - k + C+_{i-1}), C-_i = max(0, -z_i - k + C-_{i-1})."""
     z = np.asarray(z, float)
     cp = np.full(z.shape, np.nan)
     cm = np.full(z.shape, np.nan)
@@ -250,13 +248,13 @@ def _brook_evans_matrix(k: float, h: float, m: int, shift: float) -> np.ndarray:
 
 
 def cusum_one_sided_arl(k: float = 0.5, h: float = 5.0, shift: float = 0.0, m: int = 300) -> float:
-    """Brook & Evans 1972 (Biometrika 59:539): average run length from C = 0, (I - R)^-1 1 (Montgomery Table 9.3)."""
+    """[BROOK1972]: average run length from C = 0, (I - R)^-1 1 ([MONTGOMERY2013] table 9.3)."""
     R = _brook_evans_matrix(k, h, m, shift)
     return float(np.linalg.solve(np.eye(m) - R, np.ones(m))[0])
 
 
 def cusum_one_sided_alarm_probability(n: int, k: float = 0.5, h: float = 5.0, m: int = 300, shift: float = 0.0) -> float:
-    """Brook & Evans 1972 (Biometrika 59:539) Markov chain: P(one-sided CUSUM from 0 signals within n N(shift,1) steps)."""
+    """[BROOK1972] Markov chain: P(one-sided CUSUM from 0 signals within n N(shift,1) steps)."""
     if n <= 0:
         return 0.0
     R = _brook_evans_matrix(k, h, m, shift)
@@ -270,7 +268,7 @@ def cusum_one_sided_alarm_probability(n: int, k: float = 0.5, h: float = 5.0, m:
 @lru_cache(maxsize=256)
 def cusum_false_alarm_probability(n_residuals: int, k: float = 0.5, h: float = 5.0) -> float:
     """Two-sided alarm probability within ``n_residuals`` in-control steps: 1 - (1 - p1)^2 (sides treated as
-    independent, Montgomery 2013 sec. 9.1.3; they are weakly dependent, the approximation is checked by simulation
+    independent, [MONTGOMERY2013] sec. 9.1.3; they are weakly dependent, the approximation is checked by simulation
     in tests/test_drift.py)."""
     p1 = cusum_one_sided_alarm_probability(n_residuals, k, h)
     return float(1.0 - (1.0 - p1) ** 2)
@@ -359,7 +357,7 @@ class SeriesDrift:
 def analyze_series(t_days, values, stderrs, *, sigma_turnon: float | None = None, sigma_source: str = "given",
                    sigma_dof: float | None = None, config: DriftConfig = DriftConfig(), key: dict | None = None,
                    unit: str = "", run_ids=None, start_times_utc=None) -> SeriesDrift:
-    """Trend, control limits, drift and shift flags of one series (module docstring: Montgomery 2013 6.4, 9.1).
+    """Trend, control limits, drift and shift flags of one series (module docstring: [MONTGOMERY2013] 6.4, 9.1).
 
     ``sigma_turnon`` known (``sigma_dof`` None) or estimated with ``sigma_dof`` degrees of freedom (t test)."""
     t = np.asarray(t_days, float)

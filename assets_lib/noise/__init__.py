@@ -1,1 +1,1 @@
-"""Noise: Allan deviation estimators and kernels, their confidence intervals, IEEE 952 noise identification."""
+"""Noise: Allan deviations (``allan``), their intervals, [IEEE952] noise identification, the pooled short-window model."""

@@ -1,22 +1,40 @@
-"""IEEE 952 noise terms from an Allan variance curve: generalised least squares with intervals, and slope reads.
+"""[IEEE952] noise terms from an Allan variance curve: generalised least squares with intervals, and slope reads.
 
-IEEE Std 952-1997 Annex C (C.23): sigma^2(tau) = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2,
-optionally + first-order Markov (C.25) and sinusoid (C.27) terms (seed 002 sec. 2.2 (1)-(7)).
+[IEEE952] Annex C (C.23): sigma^2(tau) = 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau/3 + R^2 tau^2/2,
+optionally + first-order Markov (C.25) and sinusoid (C.27) terms ([SEED002] sec. 2.2 (1)-(7)).
 
-Estimator (allan.md section 6.3): the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The AVAR
+Estimator: the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The AVAR
 points are heteroscedastic and strongly correlated across tau, so they are fitted by non-negative generalised
 least squares with their covariance V evaluated at the current model (iterated):
-- variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from Greenhall & Riley 2003 at the model's local
+- variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from [GREENHALL2003] at the model's local
   power-law exponent (interpolated between integer alphas);
 - correlations from the large-n Gaussian approximation
   Cov(s2_j, s2_k) ~ min(n_j, n_k) / (2 n_j n_k tau0) * integral S(f)^2 |G_j(f)|^2 |G_k(f)|^2 df,
   |G_tau(f)|^2 = 4 sin^4(pi f tau)/(pi f tau)^2, S the model's two-sided rate PSD (the generalisation of
-  Vaccaro & Zaki 2012 to the IEEE 952 mixture).
+  [VACCARO2012] to the [IEEE952] mixture).
 Each theta_k gets a Wald covariance (X' V^-1 X)^-1 and a Satterthwaite chi-square interval (theta is a variance);
 a term whose Wald interval reaches zero is reported as a one-sided upper bound, not as a number.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
-when terms overlap (Guerrier, Molinari & Stebler 2016) and benchmarks/mc_noise_id.py measures by how much.
+when terms overlap ([GUERRIER2016]) and benchmarks/mc_noise_id.py measures by how much.
+
+Real curves (docs/realdata.md). A real sensor's curve departs from the ideal mixture (anti-alias and decimation
+filters, flicker that is not exactly 1/f, temperature): the short-tau points carry millions of degrees of
+freedom, so with purely statistical weights they dominate the fit and a model that misses them by a few percent
+is pulled far off everywhere else (chi2/dof ~ 2000 on a real phone record). Three safeguards:
+
+* **Model discrepancy in the weights.** When the GLS chi2 exceeds its 99.9 % chi-square quantile, a relative
+  discrepancy variance delta^2 sigma^4_model(tau) is added to every point's variance (a fractional model error
+  common to all taus, the additive model-discrepancy term of Kennedy & O'Hagan 2001), with delta solved so that
+  chi2 / dof = 1; the term intervals widen accordingly. ``delta`` is reported (``NoiseFit.discrepancy``).
+* **Tau range.** ``tau_min_s`` / ``tau_max_s`` restrict the fit (default: every tau with at least
+  ``min_terms`` terms and m <= N/4). The range used is reported (``NoiseFit.tau_range_s``).
+* **Check against the curve.** The fitted model is compared with the curve's chi-square intervals at a
+  family-wise ``check_ci`` (99 % over all fitted taus, Bonferroni) over the fit range; every contiguous tau range where it leaves them is named in
+  ``NoiseFit.warnings`` (with the model/curve ratio), so the CLI, record and certificate can say so loudly.
+
+Slope reads use only points with at least ``min_edf`` degrees of freedom (the last points of a curve have 1-3,
+a +-50 % interval, and a slope through them can be anything).
 """
 
 from __future__ import annotations
@@ -30,45 +48,15 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, stats
 
+from assets_lib.coefficient import Coefficient
 from assets_lib.noise.allan import AllanResult
 from assets_lib.noise.intervals import edf_greenhall
+from raw_schemas.units import lab_unit
 
 LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
 TERMS = ("Q", "N", "B", "K", "R")
 #: local log-log slope of sigma^2 for each term (alpha = -slope - 1 for the EDF)
 _TERM_ALPHA = {"Q": 2.0, "N": 0.0, "B": -1.0, "K": -2.0, "R": -2.0, "M": 0.0, "S": 0.0}
-
-RAD2DEG = 180.0 / math.pi
-G0 = 9.80665
-
-#: SI unit and (lab unit, factor SI -> lab) per sensor and parameter
-UNITS = {
-    "gyro": {
-        "Q": ("rad", "arcsec", RAD2DEG * 3600.0),
-        "N": ("rad/s/sqrt(Hz)", "deg/sqrt(h)", RAD2DEG * 60.0),
-        "B": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "K": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "R": ("rad/s^2", "deg/h/h", RAD2DEG * 3600.0**2),
-        "markov_q": ("rad/s/sqrt(s)", "deg/h/sqrt(h)", RAD2DEG * 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("rad/s", "deg/h", RAD2DEG * 3600.0),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-    "accel": {
-        "Q": ("m/s", "m/s", 1.0),
-        "N": ("m/s^2/sqrt(Hz)", "m/s/sqrt(h)", 60.0),
-        "B": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "K": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "R": ("m/s^3", "m/s/h^2", 3600.0**2),
-        "markov_q": ("m/s^2/sqrt(s)", "m/s/h/sqrt(h)", 3600.0 * 60.0),
-        "markov_tc": ("s", "s", 1.0),
-        "sin_amplitude": ("m/s^2", "ug", 1.0 / (1e-6 * G0)),
-        "sin_freq": ("Hz", "Hz", 1.0),
-    },
-}
-UNITS["si"] = {k: (v[0], v[0], 1.0) for k, v in UNITS["gyro"].items()}
-UNITS["si"].update({k: ("", "", 1.0) for k in ("Q", "N", "B", "K", "R")})
-
 
 def sensor_of(channel: str = "", unit: str = "") -> str:
     """'gyro' | 'accel' | 'si' from a channel name (gyro_*, accel_*) or an SI unit string."""
@@ -88,7 +76,7 @@ def sensor_of(channel: str = "", unit: str = "") -> str:
 # model basis
 # --------------------------------------------------------------------------------------------------------------
 def basis(tau_s: np.ndarray, terms: Sequence[str] = TERMS) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.23: columns g_k(tau) with sigma^2 = sum_k theta_k g_k, theta = (Q^2, N^2, ...)."""
+    """[IEEE952] eq. C.23: columns g_k(tau) with sigma^2 = sum_k theta_k g_k, theta = (Q^2, N^2, ...)."""
     tau = np.asarray(tau_s, dtype=float)
     cols = {
         "Q": 3.0 / tau**2,
@@ -101,14 +89,14 @@ def basis(tau_s: np.ndarray, terms: Sequence[str] = TERMS) -> np.ndarray:
 
 
 def markov_avar_unit(tau_s: np.ndarray, tc_s: float) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.25 (seed 002 (6)): AVAR of a first-order Markov rate with (q_c T_c)^2 = 1."""
+    """[IEEE952] eq. C.25 ([SEED002] (6)): AVAR of a first-order Markov rate with (q_c T_c)^2 = 1."""
     tau = np.asarray(tau_s, dtype=float)
     r = tau / tc_s
     return (1.0 / tau) * (1.0 - (1.0 / (2.0 * r)) * (3.0 - 4.0 * np.exp(-r) + np.exp(-2.0 * r)))
 
 
 def sinusoid_avar_unit(tau_s: np.ndarray, f0_hz: float) -> np.ndarray:
-    """IEEE Std 952-1997 eq. C.27 (seed 002 (7)): AVAR of a sinusoidal rate of unit amplitude at f0."""
+    """[IEEE952] eq. C.27 ([SEED002] (7)): AVAR of a sinusoidal rate of unit amplitude at f0."""
     x = math.pi * f0_hz * np.asarray(tau_s, dtype=float)
     return (np.sin(x) ** 2 / x) ** 2
 
@@ -117,7 +105,7 @@ def sinusoid_avar_unit(tau_s: np.ndarray, f0_hz: float) -> np.ndarray:
 # covariance of AVAR estimates at a model
 # --------------------------------------------------------------------------------------------------------------
 def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s: float | None) -> np.ndarray:
-    """IEEE Std 952-1997 Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
+    """[IEEE952] Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
     w = 2.0 * np.pi * f
     S = np.zeros_like(f)
     S += theta.get("Q", 0.0) * w**2 * tau0
@@ -133,7 +121,7 @@ def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s:
 def avar_correlation(
     tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
 ) -> np.ndarray:
-    """Large-n Gaussian correlation of overlapping AVAR estimates at a model (Vaccaro & Zaki 2012, generalised)."""
+    """Large-n Gaussian correlation of overlapping AVAR estimates at a model ([VACCARO2012], generalised)."""
     tau = np.asarray(tau_s, dtype=float)
     tau0 = 1.0 / rate_hz
     f_lo = 1e-3 / tau.max()
@@ -184,25 +172,46 @@ def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarr
 # --------------------------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class NoiseParameter:
-    """One noise coefficient: SI value with interval, the same in lab units, method and upper-bound flag."""
+    """One noise term: its SI :class:`Coefficient` (interval at ``ci_level``), method and upper-bound flag.
+
+    ``estimate.value`` is NaN when the term is only bounded (``is_upper_bound``; ``ci_hi`` is the bound);
+    ``estimate.stderr`` is the delta-method standard error of a fitted term (NaN for slope reads and bounds).
+    Lab units come from the one lab-unit table, ``raw_schemas.units.lab_unit``.
+    """
 
     name: str
-    value: float  #: SI; NaN when the term is only bounded (is_upper_bound)
-    ci_lo: float
-    ci_hi: float  #: the upper bound when is_upper_bound
-    unit: str
-    value_lab: float
-    ci_lo_lab: float
-    ci_hi_lab: float
-    unit_lab: str
+    estimate: Coefficient
+    sensor: str  #: 'gyro' | 'accel' | 'si' (selects the lab units)
     method: str  #: 'fit' | 'slope'
     is_upper_bound: bool
-    ci_level: float = 0.95
+
+    value = property(lambda self: self.estimate.value)
+    ci_lo = property(lambda self: self.estimate.ci_low)
+    ci_hi = property(lambda self: self.estimate.ci_high)
+    unit = property(lambda self: self.estimate.unit)
+    ci_level = property(lambda self: self.estimate.ci_level)
+
+    @property
+    def lab(self) -> Coefficient:
+        return self.estimate.to_lab(lab_unit(self.sensor, self.name))
+
+    value_lab = property(lambda self: self.lab.value)
+    ci_lo_lab = property(lambda self: self.lab.ci_low)
+    ci_hi_lab = property(lambda self: self.lab.ci_high)
+    unit_lab = property(lambda self: self.lab.unit)
+
+    def as_dict(self) -> dict:
+        """Flat record (the NOISE TABLE columns but the channel, plus the standard error)."""
+        lab = self.lab
+        return {"name": self.name, "value": self.value, "stderr": self.estimate.stderr, "ci_lo": self.ci_lo,
+                "ci_hi": self.ci_hi, "unit": self.unit, "value_lab": lab.value, "ci_lo_lab": lab.ci_low,
+                "ci_hi_lab": lab.ci_high, "unit_lab": lab.unit, "method": self.method,
+                "is_upper_bound": self.is_upper_bound, "ci_level": self.ci_level}
 
 
 @dataclass(frozen=True)
 class NoiseFit:
-    """IEEE 952 fit of one channel: parameters, theta (variances) and their covariance, the model curve."""
+    """[IEEE952] fit of one channel: parameters, theta (variances) and their covariance, the model curve."""
 
     channel: str
     sensor: str
@@ -218,9 +227,17 @@ class NoiseFit:
     markov_tc_s: float | None = None
     sin_f0_hz: float | None = None
     iterations: int = 0
+    tau_range_s: tuple = (math.nan, math.nan)  #: (min, max) tau used by the fit
+    discrepancy: float = 0.0  #: relative model discrepancy delta added to the weights (0: none needed)
+    outside_tau_ranges: tuple = ()  #: ((tau_lo, tau_hi, min ratio, max ratio), ...) model/curve outside check_ci
+    warnings: tuple = ()
+
+    @property
+    def matches_curve(self) -> bool:
+        return not self.outside_tau_ranges
 
     def term_avar(self, tau_s: np.ndarray) -> dict[str, np.ndarray]:
-        """IEEE Std 952-1997 eq. C.23: each term's contribution to sigma^2(tau)."""
+        """[IEEE952] eq. C.23: each term's contribution to sigma^2(tau)."""
         tau = np.asarray(tau_s, dtype=float)
         out = {}
         for k, t in enumerate(self.terms):
@@ -243,29 +260,17 @@ class NoiseFit:
         raise KeyError(name)
 
 
-def _param(name, value, lo, hi, sensor, method, upper, ci_level) -> NoiseParameter:
-    unit, unit_lab, f = UNITS[sensor][name]
-    return NoiseParameter(
-        name=name,
-        value=float(value),
-        ci_lo=float(lo),
-        ci_hi=float(hi),
-        unit=unit,
-        value_lab=float(value) * f,
-        ci_lo_lab=float(lo) * f,
-        ci_hi_lab=float(hi) * f,
-        unit_lab=unit_lab,
-        method=method,
-        is_upper_bound=bool(upper),
-        ci_level=float(ci_level),
-    )
+def _param(name, value, lo, hi, sensor, method, upper, ci_level, stderr=math.nan) -> NoiseParameter:
+    est = Coefficient(float(value), float(stderr), lab_unit(sensor, name).si, not upper, float(lo), float(hi),
+                      float(ci_level))
+    return NoiseParameter(name=name, estimate=est, sensor=sensor, method=method, is_upper_bound=bool(upper))
 
 
 # --------------------------------------------------------------------------------------------------------------
 # the fit
 # --------------------------------------------------------------------------------------------------------------
 def _nn_gls(X: np.ndarray, a: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, float]:
-    """min (a - X t)' V^-1 (a - X t) subject to t >= 0 (Lawson-Hanson NNLS on the whitened system)."""
+    """min (a - X t)' V^-1 (a - X t) subject to t >= 0 ([LAWSON1974] NNLS on the whitened system)."""
     L = np.linalg.cholesky(V)
     Xw = np.linalg.solve(L, X)
     aw = np.linalg.solve(L, a)
@@ -282,10 +287,64 @@ def _regularise(V: np.ndarray) -> np.ndarray:
     return R * np.outer(d, d)
 
 
-def _select(res: AllanResult, max_m_fraction: float, min_terms: int) -> np.ndarray:
+def _select(res: AllanResult, max_m_fraction: float, min_terms: int, tau_min_s: float | None = None,
+            tau_max_s: float | None = None) -> np.ndarray:
     ok = (res.n_terms >= min_terms) & (res.m <= max_m_fraction * res.n_samples) & np.isfinite(res.adev)
     ok &= res.adev > 0
+    if tau_min_s is not None:
+        ok &= res.tau_s >= tau_min_s * (1 - 1e-9)
+    if tau_max_s is not None:
+        ok &= res.tau_s <= tau_max_s * (1 + 1e-9)
     return ok
+
+
+def _discrepancy(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, model: np.ndarray, p_level: float = 0.999
+                 ) -> tuple[float, np.ndarray]:
+    """Relative discrepancy delta with GLS chi2(delta) / dof = 1 when the statistical chi2 is implausibly large
+    (above its ``p_level`` quantile); returns (delta, V + delta^2 diag(model^2))."""
+    dof = max(len(a) - Xd.shape[1], 1)
+    _, chi2_0 = _nn_gls(Xd, a, V)
+    if chi2_0 <= stats.chi2.ppf(p_level, dof):
+        return 0.0, V
+    m2 = np.diag(np.maximum(model, 1e-300) ** 2)
+
+    def excess(log_d):
+        return _nn_gls(Xd, a, V + math.exp(2 * log_d) * m2)[1] / dof - 1.0
+
+    lo, hi = math.log(1e-6), math.log(10.0)
+    if excess(hi) > 0:
+        d = 10.0
+    elif excess(lo) < 0:
+        d = 1e-6
+    else:
+        d = math.exp(optimize.brentq(excess, lo, hi, xtol=1e-3))
+    return d, V + d * d * m2
+
+
+def _outside_ranges(res: AllanResult, sel: np.ndarray, model_avar, check_ci: float) -> tuple:
+    """Contiguous tau ranges (within the selection) where the model deviation leaves the curve's chi-square
+    interval at ``check_ci``: ((tau_lo, tau_hi, min model/curve, max model/curve), ...)."""
+    from assets_lib.noise.intervals import chi2_interval
+
+    tau, dev, edf = res.tau_s[sel], res.adev[sel], res.edf[sel]
+    # family-wise over the fitted taus (Bonferroni): a dense grid of 100 taus would otherwise see a point outside
+    # its own 99 % interval by chance in most records
+    lo, hi = chi2_interval(dev, edf, 1.0 - (1.0 - check_ci) / max(len(tau), 1))
+    mdev = np.sqrt(np.maximum(model_avar(tau), 0.0))
+    out = (mdev < lo) | (mdev > hi)
+    ranges = []
+    j = 0
+    while j < len(tau):
+        if out[j]:
+            k = j
+            while k + 1 < len(tau) and out[k + 1]:
+                k += 1
+            ratio = mdev[j:k + 1] / dev[j:k + 1]
+            ranges.append((float(tau[j]), float(tau[k]), float(ratio.min()), float(ratio.max())))
+            j = k + 1
+        else:
+            j += 1
+    return tuple(ranges)
 
 
 def fit_noise(
@@ -299,14 +358,59 @@ def fit_noise(
     max_m_fraction: float = 0.25,
     min_terms: int = 4,
     iterations: int = 4,
+    tau_min_s: float | str | None = "auto",
+    tau_max_s: float | None = None,
+    model_discrepancy: bool = True,
+    check_ci: float = 0.99,
+    min_edf: float = 10.0,
 ) -> NoiseFit:
-    """IEEE Std 952-1997 Annex C fit by iterated non-negative GLS; intervals on every term (see module doc)."""
+    """[IEEE952] Annex C fit by iterated non-negative GLS; intervals on every term; model-discrepancy
+    weights, tau range and the check against the curve's intervals as in the module doc.
+
+    ``tau_min_s="auto"`` (default): the smallest tau of the curve from which the fitted model stays inside the
+    curve's ``check_ci`` intervals up to ``tau_max_s`` (tried in order over the curve's taus up to
+    tau_max / 30, keeping at least len(terms) + 3 points); when the short-tau end had to be cut, the start is
+    moved one octave further (twice that tau) if the model still matches there; the excluded short-tau range
+    is named in ``warnings``. When no start works, the whole range is fitted and the mismatch is warned about. ``None``:
+    every usable tau."""
     if res.kind != "oadev":
         raise ValueError("fit_noise expects an overlapping Allan deviation (kind='oadev')")
+    kw = dict(terms=terms, markov=markov, sinusoid=sinusoid, ci_level=ci_level, sensor=sensor,
+              max_m_fraction=max_m_fraction, min_terms=min_terms, iterations=iterations, tau_max_s=tau_max_s,
+              model_discrepancy=model_discrepancy, check_ci=check_ci, min_edf=min_edf)
+    if isinstance(tau_min_s, str):
+        if tau_min_s != "auto":
+            raise ValueError(f"tau_min_s must be a number, None or 'auto', not {tau_min_s!r}")
+        sel0 = _select(res, max_m_fraction, min_terms, None, tau_max_s)
+        taus = res.tau_s[sel0]
+        need = len(terms) + (1 if markov else 0) + (1 if sinusoid else 0) + 3
+        cands = [t for i, t in enumerate(taus) if len(taus) - i >= need and t <= taus.max() / 30.0] or [taus.min()]
+        first = None
+        for i0, t0 in enumerate(cands):
+            f = fit_noise(res, tau_min_s=float(t0), **kw)
+            first = first or f
+            if f.matches_curve and i0 > 0:
+                # one octave of margin: at the edge of a departure a model absorbs the residual misfit by
+                # trading terms (a filtered white noise looks like a negative Q term there), so start later
+                t_guard = 2.0 * t0
+                if len(taus[taus >= t_guard * (1 - 1e-9)]) >= need:
+                    g = fit_noise(res, tau_min_s=float(t_guard), **kw)
+                    if g.matches_curve:
+                        f, t0 = g, taus[taus >= t_guard * (1 - 1e-9)].min()
+            if f.matches_curve:
+                if t0 > taus.min():
+                    note = (f"{res.channel or 'channel'}: fit starts at tau {t0:.4g} s; for tau {taus.min():.4g}-"
+                            f"{taus[taus < t0].max():.4g} s the curve departs from the IEEE 952 model (filter response "
+                            f"or coloured short-tau noise): terms read there would be wrong")
+                    f = _replace(f, warnings=(note,) + f.warnings)
+                return f
+        return _replace(first, warnings=first.warnings + (f"{res.channel or 'channel'}: no tau range start makes the "
+                                                          "model match the curve; whole range fitted",))
     sensor = sensor or sensor_of(res.channel, res.unit)
-    sel = _select(res, max_m_fraction, min_terms)
+    sel = _select(res, max_m_fraction, min_terms, tau_min_s, tau_max_s)
     if sel.sum() < len(terms) + 1:
-        raise ValueError(f"only {int(sel.sum())} usable taus for {len(terms)} terms: record too short")
+        raise ValueError(f"only {int(sel.sum())} usable taus in the tau range "
+                         f"[{tau_min_s or res.tau_s.min():g}, {tau_max_s or res.tau_s.max():g}] s for {len(terms)} terms")
     tau = res.tau_s[sel]
     a = res.avar[sel]
     m = res.m[sel]
@@ -340,7 +444,7 @@ def fit_noise(
         d = np.sqrt(2.0 * model**2 / edf)
         return _regularise(R * np.outer(d, d))
 
-    # start: diagonal weights from the measured points (NIST SP 1065 EDF of the identified noise)
+    # start: diagonal weights from the measured points ([NIST1065] EDF of the identified noise)
     V = np.diag(2.0 * a**2 / np.where(np.isfinite(res.edf[sel]) & (res.edf[sel] > 0), res.edf[sel], 1.0))
     grid_tc = np.geomspace(tau.min() * 2, tau.max() / 2, 24) if markov else [None]
     grid_f0 = np.geomspace(1.0 / tau.max(), 0.5 / tau.min(), 32) if sinusoid else [None]
@@ -364,6 +468,14 @@ def fit_noise(
         if converged:
             break
     Xd = design(tc, f0)
+    delta = 0.0
+    if model_discrepancy:
+        for _ in range(3):  # discrepancy at the current model, refit, statistical covariance at the new model
+            theta, _ = _nn_gls(Xd, a, V)
+            Vstat = covariance(theta, Xd)
+            delta, V = _discrepancy(Xd, a, Vstat, np.maximum(Xd @ theta, 1e-300))
+            if delta == 0.0:
+                break
     theta, rss = _nn_gls(Xd, a, V)
     L = np.linalg.cholesky(V)
     Xw = np.linalg.solve(L, Xd)
@@ -383,6 +495,8 @@ def fit_noise(
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
+            # delta method: d sqrt(theta) = d theta / (2 sqrt(theta)) (Markov: also / T_c)
+            se = _theta_to_param(t, th, tc) * sd / (2.0 * th)
             params.append(
                 _param(
                     name,
@@ -393,13 +507,24 @@ def fit_noise(
                     "fit",
                     False,
                     ci_level,
+                    se,
                 )
             )
     if markov:
         params.append(_param("markov_tc", tc, tc, tc, sensor, "fit", False, ci_level))
     if sinusoid:
         params.append(_param("sin_freq", f0, f0, f0, sensor, "fit", False, ci_level))
-    slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level)
+    slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level, min_edf=min_edf, tau_min_s=tau_min_s,
+                               tau_max_s=tau_max_s)
+    proto = NoiseFit(res.channel, sensor, (), (), tuple(term_list), theta, cov, tau, a, rss, 1, tc, f0)
+    outside = _outside_ranges(res, sel, proto.model_avar, check_ci)
+    warns = []
+    for lo_t, hi_t, rmin, rmax in outside:
+        warns.append(f"{res.channel or 'channel'}: the noise model leaves the curve's {100 * check_ci:g} % (family-wise) intervals "
+                     f"for tau {lo_t:.4g}-{hi_t:.4g} s (model/curve {rmin:.3g}-{rmax:.3g})")
+    if delta > 0:
+        warns.append(f"{res.channel or 'channel'}: the curve departs from the IEEE 952 model by ~{100 * delta:.3g} % "
+                     f"(relative discrepancy added to the fit weights; intervals widened)")
     return NoiseFit(
         channel=res.channel,
         sensor=sensor,
@@ -415,7 +540,17 @@ def fit_noise(
         markov_tc_s=tc,
         sin_f0_hz=f0,
         iterations=it,
+        tau_range_s=(float(tau.min()), float(tau.max())),
+        discrepancy=float(delta),
+        outside_tau_ranges=outside,
+        warnings=tuple(warns),
     )
+
+
+def _replace(fit: NoiseFit, **changes) -> NoiseFit:
+    import dataclasses
+
+    return dataclasses.replace(fit, **changes)
 
 
 def _theta_to_param(t: str, th: float, tc: float | None) -> float:
@@ -428,17 +563,24 @@ def _theta_to_param(t: str, th: float, tc: float | None) -> float:
 # --------------------------------------------------------------------------------------------------------------
 # classic slope reads
 # --------------------------------------------------------------------------------------------------------------
-def slope_reads(res: AllanResult, *, sensor: str | None = None, ci_level: float = 0.95, tol: float = 0.25) -> list:
-    """IEEE Std 952-1997 C.3 / seed 002 sec. 2.2: single-line reads of Q, N, B, K, R on the log-log ADEV curve.
+def slope_reads(res: AllanResult, *, sensor: str | None = None, ci_level: float = 0.95, tol: float = 0.25,
+                min_edf: float = 10.0, tau_min_s: float | None = None, tau_max_s: float | None = None) -> list:
+    """[IEEE952] C.3 / [SEED002] sec. 2.2 / [ELSHEIMY2008]: single-line reads of Q, N, B, K, R on the log-log ADEV curve.
 
     N: the -1/2 line through the point whose local slope is closest to -1/2, read at tau = 1 s; K: the +1/2
     line read at tau = 3 s; Q: -1 line at tau = sqrt(3) s; R: +1 line at tau = sqrt(2) s; B: the curve minimum
     / sqrt(2 ln2 / pi). The interval carries the chi-square interval of the deviation at the read point
     (at ``ci_level``, from the point's EDF). A read is omitted when no part of the curve has a slope within
-    ``tol`` of the line's.
+    ``tol`` of the line's. Points with fewer than ``min_edf`` degrees of freedom, or outside the tau range, are
+    not read.
     """
     sensor = sensor or sensor_of(res.channel, res.unit)
     ok = (res.n_terms >= 4) & (res.adev > 0) & np.isfinite(res.adev)
+    ok &= np.isfinite(res.edf) & (res.edf >= min_edf)
+    if tau_min_s is not None:
+        ok &= res.tau_s >= tau_min_s * (1 - 1e-9)
+    if tau_max_s is not None:
+        ok &= res.tau_s <= tau_max_s * (1 + 1e-9)
     tau, dev, edf = res.tau_s[ok], res.adev[ok], res.edf[ok]
     out = []
     if len(tau) < 3:
@@ -488,6 +630,9 @@ NOISE_COLUMNS = [
     "method",
     "is_upper_bound",
     "ci_level",
+    "tau_min_s",
+    "tau_max_s",
+    "fit_warning",
 ]
 
 
@@ -497,7 +642,8 @@ def fit_all(results: Mapping[str, AllanResult], **kw) -> dict[str, NoiseFit]:
 
 
 def noise_table(fits, **kw) -> pd.DataFrame:
-    """Tidy table (channel, parameter, value, ci_lo, ci_hi, unit, *_lab, method, is_upper_bound) of fits.
+    """Tidy table (channel, parameter, value, ci_lo, ci_hi, unit, *_lab, method, is_upper_bound, the fit's tau range
+    and its warnings, joined by " | ", on every row of the channel) of fits.
 
     ``fits``: mapping channel -> NoiseFit, or mapping channel -> AllanResult (fitted here with ``kw``).
     """
@@ -522,6 +668,9 @@ def noise_table(fits, **kw) -> pd.DataFrame:
                     "method": p.method,
                     "is_upper_bound": p.is_upper_bound,
                     "ci_level": p.ci_level,
+                    "tau_min_s": fit.tau_range_s[0],
+                    "tau_max_s": fit.tau_range_s[1],
+                    "fit_warning": " | ".join(fit.warnings),
                 }
             )
     return pd.DataFrame(rows, columns=NOISE_COLUMNS)

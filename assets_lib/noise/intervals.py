@@ -1,9 +1,7 @@
 """Equivalent degrees of freedom and chi-square confidence intervals of Allan-family deviations.
 
-Greenhall & Riley, "Uncertainty of stability variances based on finite differences", PTTI 2003 (the EDF
-algorithm NIST SP 1065 section 5.3 and Stable32 use); chi-square interval NIST SP 1065 eq. 42.
-Noise-type identification by the lag-1 autocorrelation: Riley & Greenhall, "Power law noise identification
-using the lag 1 autocorrelation", EFTF 2004.
+[GREENHALL2003] (the EDF algorithm [NIST1065] sec. 5.3 and [STABLE32] use); chi-square interval [NIST1065]
+eq. 42. Noise-type identification by the lag-1 autocorrelation: [RILEY2004].
 
 Power-law exponent ``alpha`` is that of the fractional-frequency (rate) PSD S_y(f) ~ f^alpha:
 +2 white phase (quantization, Q), +1 flicker phase, 0 white rate (angle random walk, N),
@@ -22,7 +20,7 @@ from scipy.special import binom
 #: Stable32's default: a "1-sigma" interval.
 ONE_SIGMA_CI = 0.682689492137
 
-#: Greenhall & Riley 2003, table 1 (modified variances): (a0, a1) by alpha (+2..-4) and d (1..3).
+#: [GREENHALL2003], table 1 (modified variances): (a0, a1) by alpha (+2..-4) and d (1..3).
 _TABLE1 = {
     2: [(2.0 / 3.0, 1.0 / 3.0), (7.0 / 9.0, 1.0 / 2.0), (22.0 / 25.0, 2.0 / 3.0)],
     1: [(0.840, 0.345), (0.997, 0.616), (1.141, 0.843)],
@@ -32,7 +30,7 @@ _TABLE1 = {
     -3: [None, None, (1.194, 0.703)],
     -4: [None, None, (1.489, 0.702)],
 }
-#: Greenhall & Riley 2003, table 2 (unmodified variances, large r): (a0, a1).
+#: [GREENHALL2003], table 2 (unmodified variances, large r): (a0, a1).
 _TABLE2 = {
     2: [(3.0 / 2.0, 1.0 / 2.0), (35.0 / 18.0, 1.0), (231.0 / 100.0, 3.0 / 2.0)],
     1: [(78.6, 25.2), (790.0, 410.0), (9950.0, 6520.0)],
@@ -42,7 +40,7 @@ _TABLE2 = {
     -3: [None, None, (1.053, 0.553)],
     -4: [None, None, (1.302, 0.535)],
 }
-#: Greenhall & Riley 2003, table 3 (unmodified variances, alpha = +1): (b0, b1) by d.
+#: [GREENHALL2003], table 3 (unmodified variances, alpha = +1): (b0, b1) by d.
 _TABLE3 = [(6.0, 4.0), (15.23, 12.0), (47.8, 40.0)]
 
 _J_MAX = 100
@@ -51,7 +49,7 @@ _DIFF_WEIGHTS = {1: (2.0, -1.0), 2: (6.0, -4.0, 1.0), 3: (20.0, -15.0, 6.0, -1.0
 
 
 def _sw(t: np.ndarray, alpha: int) -> np.ndarray:
-    """Greenhall & Riley 2003 eq. 7: the generalized autocovariance sw(t) of the power-law phase noise."""
+    """[GREENHALL2003] eq. 7: the generalized autocovariance sw(t) of the power-law phase noise."""
     t = np.asarray(t, dtype=float)
     a = np.abs(t)
     if alpha == 2:
@@ -69,14 +67,14 @@ def _sw(t: np.ndarray, alpha: int) -> np.ndarray:
 
 
 def _sx(t: np.ndarray, F: float, alpha: int) -> np.ndarray:
-    """Greenhall & Riley 2003 eq. 8: sx(t) for the filter factor F (F = inf is the limit)."""
+    """[GREENHALL2003] eq. 8: sx(t) for the filter factor F (F = inf is the limit)."""
     if math.isinf(F):
         return _sw(t, alpha + 2)
     return F**2 * (2.0 * _sw(t, alpha) - _sw(t - 1.0 / F, alpha) - _sw(t + 1.0 / F, alpha))
 
 
 def _sz(t: np.ndarray, F: float, alpha: int, d: int) -> np.ndarray:
-    """Greenhall & Riley 2003 eq. 9: sz(t), the d-th difference of sx."""
+    """[GREENHALL2003] eq. 9: sz(t), the d-th difference of sx."""
     w = _DIFF_WEIGHTS[d]
     out = w[0] * _sx(t, F, alpha)
     for k in range(1, d + 1):
@@ -85,7 +83,7 @@ def _sz(t: np.ndarray, F: float, alpha: int, d: int) -> np.ndarray:
 
 
 def _basic_sum(J: float, M: float, S: float, F: float, alpha: int, d: int) -> float:
-    """Greenhall & Riley 2003 eq. 10: the basic sum BS(J, M, S, F, alpha, d)."""
+    """[GREENHALL2003] eq. 10: the basic sum BS(J, M, S, F, alpha, d)."""
     J = int(J)
     j = np.arange(1, J, dtype=float)
     first = _sz(np.array(0.0), F, alpha, d) ** 2
@@ -96,7 +94,7 @@ def _basic_sum(J: float, M: float, S: float, F: float, alpha: int, d: int) -> fl
 
 @functools.lru_cache(maxsize=1 << 16)
 def edf_greenhall(alpha: int, d: int, m: int, n_phase: int, overlapping: bool, modified: bool) -> float:
-    """Greenhall & Riley 2003 section 4 (NIST SP 1065 sec. 5.3): EDF of a d-th difference variance estimate.
+    """[GREENHALL2003] section 4 ([NIST1065] sec. 5.3): EDF of a d-th difference variance estimate.
 
     ``d`` = 2 (Allan, modified Allan) or 3 (Hadamard); ``m`` averaging factor; ``n_phase`` number of phase
     points; ``overlapping`` stride 1 (else m); ``modified`` MVAR / TVAR. Requires alpha + 2 d > 1.
@@ -150,7 +148,7 @@ def edf_greenhall(alpha: int, d: int, m: int, n_phase: int, overlapping: bool, m
     return 1.0 / ((1.0 / M) * (a0 - a1 / r))
 
 
-#: (d, overlapping, modified) of each deviation kind (Greenhall & Riley 2003 table 0 / SP 1065 sec. 5.3)
+#: (d, overlapping, modified) of each deviation kind ([GREENHALL2003] table 0 / SP 1065 sec. 5.3)
 KIND_EDF_ARGS = {
     "adev": (2, False, False),
     "oadev": (2, True, False),
@@ -162,7 +160,7 @@ KIND_EDF_ARGS = {
 
 
 def edf_for_kind(kind: str, alpha: np.ndarray, m: np.ndarray, n_phase: int) -> np.ndarray:
-    """Greenhall & Riley 2003: EDF per tau for ``kind`` with the noise exponent ``alpha`` per tau."""
+    """[GREENHALL2003]: EDF per tau for ``kind`` with the noise exponent ``alpha`` per tau."""
     d, overlapping, modified = KIND_EDF_ARGS[kind]
     alpha = np.broadcast_to(np.asarray(alpha), np.shape(m))
     lo = 2 - 2 * d  # smallest admissible alpha: alpha + 2d > 1
@@ -174,7 +172,7 @@ def edf_for_kind(kind: str, alpha: np.ndarray, m: np.ndarray, n_phase: int) -> n
 
 
 def chi2_interval(dev: np.ndarray, edf: np.ndarray, ci_level: float = ONE_SIGMA_CI) -> tuple[np.ndarray, np.ndarray]:
-    """NIST SP 1065 eq. 42: chi-square interval of a deviation, sigma * sqrt(edf / chi2_{p}(edf))."""
+    """[NIST1065] eq. 42: chi-square interval of a deviation, sigma * sqrt(edf / chi2_{p}(edf))."""
     dev = np.asarray(dev, dtype=float)
     edf = np.asarray(edf, dtype=float)
     p_lo = 0.5 * (1.0 - ci_level)
@@ -185,7 +183,7 @@ def chi2_interval(dev: np.ndarray, edf: np.ndarray, ci_level: float = ONE_SIGMA_
 
 
 def lag1_acf(z: np.ndarray) -> float:
-    """Riley & Greenhall 2004 eq. 2: lag-1 autocorrelation of a series (mean removed, vectorised)."""
+    """[RILEY2004] eq. 2: lag-1 autocorrelation of a series (mean removed, vectorised)."""
     z = np.asarray(z, dtype=float)
     z = z - z.mean()
     den = float(np.dot(z, z))
@@ -201,7 +199,7 @@ def _detrend(z: np.ndarray, deg: int) -> np.ndarray:
 
 
 def acf_noise_id(z: np.ndarray, data_type: str, dmax: int = 2) -> tuple[int, float]:
-    """Riley & Greenhall 2004 sec. 3: power-law exponent alpha by lag-1 ACF with differencing.
+    """[RILEY2004] sec. 3: power-law exponent alpha by lag-1 ACF with differencing.
 
     ``z``: the series at the averaging factor of interest: decimated phase (``data_type='phase'``) or
     averaged frequency/rate (``'freq'``). Returns (alpha rounded to an integer, alpha as float).

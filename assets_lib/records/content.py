@@ -35,7 +35,7 @@ from assets_lib.store.view import StoreView  # the one read view over the store
 from assets_lib.records.canonical import RECORD_SCHEMA_VERSION, canonical_json, content_sha256, to_jsonable
 from assets_lib.records.validity import RecordStatus, record_status, reduced_chi_square
 
-COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit")
+COEFFICIENT_SOURCES = ("gyro_rate_fit", "accel_multiposition_fit", "tablefree_fit")
 NOISE_SOURCES = ("allan_deviation",)
 PLOT_SOURCES = (*COEFFICIENT_SOURCES, *NOISE_SOURCES)
 COEFFICIENT_FIELDS = ("sensor", "axis", "coefficient", "value", "stderr", "unit", "value_lab", "stderr_lab", "unit_lab",

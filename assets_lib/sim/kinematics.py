@@ -9,6 +9,9 @@ follow exactly these kinematics (what the simulator writes into its manifests).
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,10 +59,29 @@ def _wrap_equal(a: float, b: float) -> bool:
     return abs((a - b + np.pi) % (2 * np.pi) - np.pi) < 1e-6
 
 
-def trajectory(plan, t_s: np.ndarray) -> Trajectory:
-    """Evaluate the plan's kinematics at times ``t_s`` (IMU clock, seconds from the first sample)."""
+def _sub(outer, inner):
+    """Intersection of two selections from ``between`` (both slices or both masks)."""
+    if isinstance(outer, slice):
+        return slice(max(outer.start, inner.start), max(min(outer.stop, inner.stop), max(outer.start, inner.start)))
+    return outer & inner
+
+
+def _compute_trajectory(plan, t_s: np.ndarray) -> Trajectory:
+    """Evaluate the plan's kinematics at times ``t_s`` (see :func:`trajectory`). Every output element depends on
+    its own time only (no reductions), so a sample's value does not depend on which other samples are asked for."""
     t = np.asarray(t_s, dtype=float)
     n = t.size
+    ordered = n < 2 or bool(np.all(t[1:] >= t[:-1]))
+
+    def between(lo: float, hi: float):
+        """Samples with lo <= t < hi: a slice on ordered times (cheap), else a boolean mask."""
+        if ordered:
+            return slice(int(np.searchsorted(t, lo, "left")), int(np.searchsorted(t, hi, "left")))
+        return (t >= lo) & (t < hi)
+
+    def some(sel) -> bool:
+        return sel.stop > sel.start if isinstance(sel, slice) else bool(sel.any())
+
     axis = np.asarray(plan.table_axis_level, dtype=float)
     steps = plan.steps
     C = np.empty((n, 3, 3))
@@ -94,8 +116,8 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
     s0 = steps[0]
     c0 = np.asarray(s0.orientation_b2l)
     r0 = np.radians(s0.table_rate_dps)
-    m = t < s0.start_s
-    if m.any():
+    m = between(-np.inf, s0.start_s)
+    if some(m):
         lead = s0.start_s
         # ramp 0 -> r0 over the lead time ending at C0
         cstart = rotation_about(axis, -0.5 * r0 * lead) @ c0
@@ -104,7 +126,7 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
     for k, s in enumerate(steps):
         ck = np.asarray(s.orientation_b2l)
         rk = np.radians(s.table_rate_dps)
-        m = (t >= s.start_s) & (t < s.end_s)
+        m = between(s.start_s, s.end_s)
         rate_piece(m, s.start_s, rk, rk, s.duration_s, ck, theta0)
         idx[m] = k
         c_end = rotation_about(axis, rk * s.duration_s) @ ck
@@ -114,7 +136,7 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
             cn = np.asarray(nxt.orientation_b2l)
             rn = np.radians(nxt.table_rate_dps)
             gap = nxt.start_s - s.end_s
-            m = (t >= s.end_s) & (t < nxt.start_s)
+            m = between(s.end_s, nxt.start_s)
             d_ang = _about_axis_angle(cn @ c_end.T, axis)
             ramp_ang = 0.5 * (rk + rn) * gap
             if d_ang is not None and _wrap_equal(d_ang, ramp_ang):
@@ -124,9 +146,9 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
                 g3 = gap / 3.0
                 c_a = rotation_about(axis, rk * g3 / 2) @ c_end
                 c_b = rotation_about(axis, -rn * g3 / 2) @ cn
-                m1 = m & (t < s.end_s + g3)
-                m2 = m & (t >= s.end_s + g3) & (t < s.end_s + 2 * g3)
-                m3 = m & (t >= s.end_s + 2 * g3)
+                m1 = _sub(m, between(s.end_s, s.end_s + g3))
+                m2 = _sub(m, between(s.end_s + g3, s.end_s + 2 * g3))
+                m3 = _sub(m, between(s.end_s + 2 * g3, np.inf))
                 rate_piece(m1, s.end_s, rk, 0.0, g3, c_end, th_end)
                 th_a = th_end + rk * g3 / 2
                 rot_piece(m2, s.end_s + g3, g3, c_a, c_b, th_a)
@@ -135,14 +157,101 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
         else:
             # after the plan the table decelerates to rest at TAIL_DECEL_RADPS2, then stays there
             ramp = abs(rk) / TAIL_DECEL_RADPS2
-            m = (t >= s.end_s) & (t < s.end_s + ramp)
-            if m.any():
+            m = between(s.end_s, s.end_s + ramp)
+            if some(m):
                 rate_piece(m, s.end_s, rk, 0.0, ramp, c_end, th_end)
-            m = t >= s.end_s + ramp
-            if m.any():
+            m = between(s.end_s + ramp, np.inf)
+            if some(m):
                 c_rest = rotation_about(axis, 0.5 * rk * ramp) @ c_end
                 rate_piece(m, s.end_s + ramp, 0.0, 0.0, 1.0, c_rest, th_end + 0.5 * rk * ramp)
     return Trajectory(t, C, w, ang, rate, idx)
+
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Opt-in cache for replicates: the kinematics of a plan at a time grid are the same in every replicate
+# ----------------------------------------------------------------------------------------------------------
+_CACHE: "OrderedDict[tuple, Trajectory] | None" = None
+_CACHE_MAX = 64
+CACHE_STATS = {"hits": 0, "subset_hits": 0, "misses": 0}
+
+
+def _plan_key(plan) -> str:
+    key = getattr(plan, "model_dump_json", None)
+    text = key() if key else repr(plan)
+    return hashlib.blake2b(text.encode(), digest_size=16).hexdigest()
+
+
+def _take(tr: Trajectory, k: np.ndarray, t: np.ndarray) -> Trajectory:
+    return Trajectory(t, tr.c_b2l[k], tr.omega_motion_level_radps[k], tr.table_angle_rad[k], tr.table_rate_radps[k],
+                      tr.step_index[k])
+
+
+def _lookup(plan, pk: str, t: np.ndarray):
+    """A cached trajectory of this plan whose grid contains every requested time (indexing; bit-identical)."""
+    for key, tr in reversed(_CACHE.items()):
+        if key[0] != pk or not isinstance(tr, Trajectory) or tr.t_s.size < 2:
+            continue
+        g = tr.t_s
+        dt = (g[-1] - g[0]) / (g.size - 1)
+        if dt <= 0:
+            continue
+        k = np.rint((t - g[0]) / dt).astype(np.int64)
+        np.clip(k, 0, g.size - 1, out=k)
+        ok = g[k] == t
+        if ok.all():
+            return _take(tr, k, t)
+        if ok.mean() > 0.5:  # the rest (window edges clipped to a step's bounds) computed and merged
+            out = _take(tr, k, t)
+            rest = _compute_trajectory(plan, t[~ok])
+            arrays = [np.array(a) for a in (out.c_b2l, out.omega_motion_level_radps, out.table_angle_rad,
+                                            out.table_rate_radps, out.step_index)]
+            for a, r in zip(arrays, (rest.c_b2l, rest.omega_motion_level_radps, rest.table_angle_rad,
+                                     rest.table_rate_radps, rest.step_index)):
+                a[~ok] = r
+            return Trajectory(t, *arrays)
+    return None
+
+
+@contextmanager
+def kinematics_cache(max_entries: int = 64):
+    """Within this block :func:`trajectory` memoises by (plan, times) and serves any subset of a cached time grid
+    by indexing. Results are bit-identical to the uncached path (each sample's kinematics depend on its own time
+    only); cached arrays are read-only, so a caller that writes into them fails loudly instead of corrupting it."""
+    global _CACHE, _CACHE_MAX
+    prev, prev_max = _CACHE, _CACHE_MAX
+    _CACHE, _CACHE_MAX = OrderedDict() if prev is None else prev, max_entries
+    try:
+        yield CACHE_STATS
+    finally:
+        _CACHE, _CACHE_MAX = prev, prev_max
+
+
+def trajectory(plan, t_s: np.ndarray) -> Trajectory:
+    """Evaluate the plan's kinematics at times ``t_s`` (IMU clock, seconds from the first sample); memoised
+    inside :func:`kinematics_cache`."""
+    if _CACHE is None:
+        return _compute_trajectory(plan, t_s)
+    t = np.asarray(t_s, dtype=float)
+    pk = _plan_key(plan)
+    key = (pk, hashlib.blake2b(t.tobytes(), digest_size=16).hexdigest() + str(t.size))
+    hit = _CACHE.get(key)
+    if hit is not None:
+        _CACHE.move_to_end(key)
+        CACHE_STATS["hits"] += 1
+        return hit
+    sub = _lookup(plan, pk, t)
+    if sub is not None:
+        CACHE_STATS["subset_hits"] += 1
+        return sub
+    CACHE_STATS["misses"] += 1
+    tr = _compute_trajectory(plan, t)
+    for a in (tr.t_s, tr.c_b2l, tr.omega_motion_level_radps, tr.table_angle_rad, tr.table_rate_radps, tr.step_index):
+        a.flags.writeable = False
+    _CACHE[key] = tr
+    while len(_CACHE) > _CACHE_MAX:
+        _CACHE.popitem(last=False)
+    return tr
 
 
 @dataclass(frozen=True)
@@ -156,14 +265,32 @@ class BodyInputs:
 
 
 def body_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float) -> BodyInputs:
-    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16)."""
+    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16); memoised
+    for identical requests inside :func:`kinematics_cache`."""
+    key = None
+    if _CACHE is not None:
+        t = np.asarray(t_s, dtype=float)
+        key = ("body", _plan_key(plan), hashlib.blake2b(t.tobytes(), digest_size=16).hexdigest() + str(t.size),
+               float(latitude_deg), float(gravity_mps2))
+        hit = _CACHE.get(key)
+        if hit is not None:
+            CACHE_STATS["hits"] += 1
+            _CACHE.move_to_end(key)
+            return hit
     tr = trajectory(plan, t_s)
     ct = np.swapaxes(tr.c_b2l, 1, 2)
     w_ie = earth_rate_level(latitude_deg, plan.frame)
     f_l = specific_force_level(gravity_mps2, plan.frame)
     w_e = ct @ w_ie
     w_motion = np.einsum("nij,nj->ni", ct, tr.omega_motion_level_radps)
-    return BodyInputs(w_motion + w_e, w_e, ct @ f_l, tr)
+    out = BodyInputs(w_motion + w_e, w_e, ct @ f_l, tr)
+    if key is not None and _CACHE is not None:
+        for a in (out.omega_b_radps, out.omega_earth_b_radps, out.f_b_mps2):
+            a.flags.writeable = False
+        _CACHE[key] = out
+        while len(_CACHE) > _CACHE_MAX:
+            _CACHE.popitem(last=False)
+    return out
 
 
 def consistent_plan_orientations(

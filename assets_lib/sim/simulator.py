@@ -20,16 +20,14 @@ import numpy as np
 import pandas as pd
 
 from assets_lib.sim.earth import normal_gravity_mps2
-from assets_lib.sim.kinematics import BodyInputs, body_inputs
-from assets_lib.sim.noise import AllanParams, allan_noise
+from assets_lib.sim.earth import earth_rate_level, specific_force_level
+from assets_lib.sim.effects.base import TableMotion, split_stages
+from assets_lib.sim.effects.core import DEFAULT_EFFECTS, AllanNoise, ErrorModel, PlateauDisturbance, Saturation  # noqa: F401
+from assets_lib.sim.kinematics import BodyInputs, Trajectory, body_inputs, trajectory
+from assets_lib.sim.noise import AllanParams
 from assets_lib.sim.plans import build_plan
 from raw_schemas.manifest import SCHEMA_VERSION, Manifest, TestPlan
-from raw_schemas.units import si_factor
-
-DEG = np.pi / 180.0
-DEGPH = DEG / 3600.0
-MG = 1e-3 * 9.80665
-UG = 1e-6 * 9.80665
+from raw_schemas.units import DEG_TO_RAD as DEG, DEGPH_TO_RADPS as DEGPH, MG_TO_MPS2 as MG, UG_TO_MPS2 as UG, si_factor
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -158,6 +156,8 @@ class SimContext:
     rng: np.random.Generator
     temperature_degc: np.ndarray
     step_index: np.ndarray
+    time_since_power_on_s: np.ndarray | None = None
+    accel_inputs: BodyInputs | None = None  # the accelerometer triad's inputs when clock effects split the triads
 
 
 class SensorEffect(Protocol):
@@ -168,111 +168,6 @@ class SensorEffect(Protocol):
     def apply(self, ctx: SimContext, gyro: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-@dataclass(frozen=True)
-class ErrorModel:
-    """Deterministic model of docs/design.md (seed 000 eq. 1-2): scale, misalignment, bias, g-sensitivity, K2, Kc."""
-
-    name: str = "error_model"
-
-    def apply(self, ctx, gyro, accel):
-        tr = ctx.truth
-        w, f = ctx.inputs.omega_b_radps, ctx.inputs.f_b_mps2
-        g = w @ tr.gyro.matrix().T + np.asarray(tr.gyro.bias) + f @ np.asarray(tr.g_sensitivity).T
-        kc = np.asarray(tr.accel.kc)
-        a = f @ tr.accel.matrix().T + np.asarray(tr.accel.bias) + np.asarray(tr.accel.k2) * f**2
-        a = a + f * (f @ kc.T)
-        return gyro + g, accel + a
-
-
-@dataclass(frozen=True)
-class AllanNoise:
-    """Allan noise of each axis (IEEE 952 Annex C), from the truth's per-axis ``AllanParams``."""
-
-    name: str = "allan_noise"
-
-    def apply(self, ctx, gyro, accel):
-        n = ctx.t_s.size
-        gyro = gyro.copy()
-        accel = accel.copy()
-        for i in range(3):
-            gyro[:, i] += allan_noise(n, ctx.rate_hz, ctx.truth.gyro.noise[i], ctx.rng)
-            accel[:, i] += allan_noise(n, ctx.rate_hz, ctx.truth.accel.noise[i], ctx.rng)
-        return gyro, accel
-
-
-@dataclass(frozen=True)
-class Saturation:
-    """Output clipped at the triads' full scale (effects.md: flat tops beyond full scale)."""
-
-    name: str = "saturation"
-
-    def apply(self, ctx, gyro, accel):
-        fs_g, fs_a = ctx.truth.gyro.full_scale, ctx.truth.accel.full_scale
-        if fs_g:
-            gyro = np.clip(gyro, -fs_g, fs_g)
-        if fs_a:
-            accel = np.clip(accel, -fs_a, fs_a)
-        return gyro, accel
-
-
-@dataclass(frozen=True)
-class PlateauDisturbance:
-    """A wild plateau: a constant offset on one channel during one plan step (a fixture knock, a glitch)."""
-
-    step_index: int
-    sensor: str  # 'gyro' | 'accel'
-    axis: int
-    offset: float  # SI
-    name: str = "plateau_disturbance"
-
-    def apply(self, ctx, gyro, accel):
-        m = ctx.step_index == self.step_index
-        out = (gyro if self.sensor == "gyro" else accel).copy()
-        out[m, self.axis] += self.offset
-        return (out, accel) if self.sensor == "gyro" else (gyro, out)
-
-
-@dataclass(frozen=True)
-class TemperatureBias:
-    """Bias proportional to (T - T0) (effects.md: temperature drift): gyro [rad/s/degC], accel [m/s^2/degC]."""
-
-    gyro_per_degc: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    accel_per_degc: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    t0_degc: float = 25.0
-    name: str = "temperature_bias"
-
-    def apply(self, ctx, gyro, accel):
-        dt = (ctx.temperature_degc - self.t0_degc)[:, None]
-        return gyro + dt * np.asarray(self.gyro_per_degc), accel + dt * np.asarray(self.accel_per_degc)
-
-
-@dataclass(frozen=True)
-class Latency:
-    """IMU samples delayed by ``delay_s`` relative to the table (effects.md: latency), by linear interpolation."""
-
-    delay_s: float
-    name: str = "latency"
-
-    def apply(self, ctx, gyro, accel):
-        t = ctx.t_s
-        shift = lambda y: np.column_stack([np.interp(t - self.delay_s, t, y[:, i]) for i in range(3)])  # noqa: E731
-        return shift(gyro), shift(accel)
-
-
-@dataclass(frozen=True)
-class GyroNonlinearity:
-    """Scale-factor nonlinearity: y_i += k2_i w_i^2 + k3_i w_i^3 (effects.md: SF nonlinearity)."""
-
-    k2_per_radps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    k3_per_radps2: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    name: str = "gyro_nonlinearity"
-
-    def apply(self, ctx, gyro, accel):
-        w = ctx.inputs.omega_b_radps
-        return gyro + np.asarray(self.k2_per_radps) * w**2 + np.asarray(self.k3_per_radps2) * w**3, accel
-
-
-DEFAULT_EFFECTS: tuple = (ErrorModel(), AllanNoise(), Saturation())
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -310,6 +205,9 @@ class SimulatedRun:
     truth: DeviceTruth
     table_clock_offset_s: float
     effects: tuple[str, ...] = field(default=())
+    effect_params: tuple[dict, ...] = field(default=())  # to_dict() of every registered effect family in the chain
+    power_on_s: float = 0.0
+    seed: int | None = None
 
     @property
     def partition_key(self) -> str:
@@ -330,6 +228,83 @@ def to_counts(values_si: np.ndarray, lsb: float, lsb_unit: str, family: str) -> 
     return np.rint(values_si / (lsb * si_factor(family, lsb_unit))).astype(np.int64)
 
 
+@dataclass(frozen=True)
+class ReplayInputs:
+    """What a recorded run fixes for its replay (built by ``assets_lib.sim.replay.load_replay``).
+
+    ``time_s`` are the recorded IMU timestamps (kinematics are evaluated at them; a nominal grid rounded to ns is
+    taken as the exact grid); ``temperature`` (the recorded thermometer column) drives the thermal effects and is
+    written back verbatim, as are ``table_raw`` (the recorded table log) and ``counter``; ``power_on_s`` is the
+    time from power-on to the first sample; ``plan_time_shift_s`` places the plan on the IMU clock
+    (t_plan = t_imu - shift; 0 for a simulated run). Plan, orientations, site, start time, run id, test kind,
+    power cycle and table id come from ``manifest``.
+    """
+
+    manifest: Manifest
+    time_s: np.ndarray
+    temperature: np.ndarray | None
+    counter: np.ndarray | None
+    table_raw: pd.DataFrame | None
+    power_on_s: float = 0.0
+    plan_time_shift_s: float = 0.0
+
+
+def _site_values(site) -> tuple[float, float, dict]:
+    """(latitude, gravity, manifest site dict) of a ``SiteSpec`` or a manifest ``Site``."""
+    if isinstance(site, SiteSpec):
+        return site.latitude_deg, site.gravity_mps2, site.manifest_site()
+    from assets_lib.sim.earth import site_gravity_mps2
+
+    return site.latitude_deg, site_gravity_mps2(site), site.model_dump()
+
+
+def true_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float, table_effects=()) -> tuple[BodyInputs, TableMotion]:
+    """Body inputs of the *true* table motion at true times ``t_s``: the plan's kinematics (seed 000 eq. 3-5)
+    perturbed by table-stage effects (rate error, wobble), then omega_b = C^T (omega_l + omega_ie), f_b = C^T f^l."""
+    tr = trajectory(plan, t_s)
+    m = TableMotion(tr.t_s, tr.c_b2l, tr.omega_motion_level_radps, tr.table_angle_rad, tr.table_rate_radps,
+                    tr.step_index, np.asarray(plan.table_axis_level, dtype=float))
+    for e in table_effects:
+        m = e.perturb(m)
+    ct = np.swapaxes(m.c_b2l, 1, 2)
+    w_e = ct @ earth_rate_level(latitude_deg, plan.frame)
+    w_motion = np.einsum("nij,nj->ni", ct, m.omega_motion_level_radps)
+    f = ct @ specific_force_level(gravity_mps2, plan.frame)
+    traj = Trajectory(m.t_s, m.c_b2l, m.omega_motion_level_radps, m.table_angle_rad, m.table_rate_radps, m.step_index)
+    return BodyInputs(w_motion + w_e, w_e, f, traj), m
+
+
+def sensed_inputs(plan, t_imu_s: np.ndarray, latitude_deg: float, gravity_mps2: float, effects=()
+                  ) -> tuple[BodyInputs, BodyInputs | None]:
+    """(gyro inputs, accel inputs or None when both triads sense the same): clock effects map the IMU sample
+    times to each triad's true times and input gain, table effects perturb the motion, input effects add to it."""
+    st = split_stages(effects)
+    if not (st["clock"] or st["table"] or st["input"]):
+        return body_inputs(plan, t_imu_s, latitude_deg, gravity_mps2), None
+    out = {}
+    for triad in ("gyro", "accel"):
+        tt, gain = t_imu_s, 1.0
+        for e in st["clock"]:
+            tt = e.true_time_s(tt, triad)
+            gain *= e.input_gain(triad)
+        if triad == "accel" and np.array_equal(tt, out["gyro"][2]):
+            bi, m = out["gyro"][3], out["gyro"][4]
+        else:
+            bi, m = true_inputs(plan, tt, latitude_deg, gravity_mps2, st["table"])
+        raw_bi = bi
+        for e in st["input"]:
+            bi = e.add_inputs(triad, bi, m)
+        if gain != 1.0:
+            bi = BodyInputs(bi.omega_b_radps * gain, bi.omega_earth_b_radps * gain, bi.f_b_mps2 * gain, bi.trajectory)
+        out[triad] = (bi, gain, tt, raw_bi, m)
+    return out["gyro"][0], out["accel"][0]
+
+
+def housing_temperature_degc(truth: DeviceTruth, time_since_power_on_s: np.ndarray) -> np.ndarray:
+    """Default thermometer temperature: ambient + 1.5 K self-heating with a 900 s time constant from power-on."""
+    return truth.temperature_degc + 1.5 * (1 - np.exp(-time_since_power_on_s / 900.0))
+
+
 def simulate_run(
     truth: DeviceTruth,
     plan: TestPlan | str,
@@ -346,47 +321,95 @@ def simulate_run(
     table_clock_offset_s: float | None = None,
     tail_s: float = 2.0,
     plan_kwargs: dict | None = None,
+    power_on_s: float = 0.0,
+    temperature_degc=None,
+    replay: ReplayInputs | None = None,
 ) -> SimulatedRun:
-    """Simulate one run of ``plan`` for ``truth`` (already drawn for its power cycle), seeded and deterministic."""
-    if isinstance(plan, str):
-        kind = test_kind or _template_kind(plan)
-        plan = build_plan(plan, **(plan_kwargs or {}))
+    """Simulate one run of ``plan`` for ``truth`` (already drawn for its power cycle), seeded and deterministic.
+
+    ``effects`` is the chain (``DEFAULT_EFFECTS`` = error model, Allan noise, saturation); add effect families
+    with ``effects.sensor_chain([...])``. ``power_on_s`` is the time from power-on to the first sample (warm-up,
+    ramps and the housing temperature continue across the runs of a power cycle). ``temperature_degc`` is a
+    function of the time since power-on [s] giving the thermometer temperature (a chamber profile; default
+    :func:`housing_temperature_degc`). ``replay`` drives the run with
+    a recorded run's inputs (its plan, timestamps, table log, temperature log and power-on time; ``plan``,
+    ``site`` and the other run descriptors are then taken from it).
+    """
+    table_df = None
+    if replay is not None:
+        man = replay.manifest
+        plan, kind, site_obj = man.plan, man.test_kind, man.site
+        run_id, start_time_utc, power_cycle_index = man.run_id, man.start_time_utc, man.power_cycle_index
+        power_on_s = replay.power_on_s
+        table_id = man.table_id
     else:
-        kind = test_kind or "multiposition"
+        if isinstance(plan, str):
+            kind = test_kind or _template_kind(plan)
+            plan = build_plan(plan, **(plan_kwargs or {}))
+        else:
+            kind = test_kind or "multiposition"
+        site_obj = site
+        table_id = "TT-3AX-01" if table_log else None
+    lat, g, site_dict = _site_values(site_obj)
     fs = truth.sample_rate_hz
     rng = np.random.default_rng([seed, _stable_int(truth.device_id), _stable_int(run_id)])
-    n = int(np.floor((plan.end_s + tail_s) * fs)) + 1
-    t = np.arange(n) / fs
-    g = site.gravity_mps2
-    inputs = body_inputs(plan, t, site.latitude_deg, g)
-    temp = truth.temperature_degc + 1.5 * (1 - np.exp(-t / 900.0))  # warm-up of the housing
-    ctx = SimContext(t, inputs, truth, fs, rng, temp, inputs.trajectory.step_index)
+    if replay is not None:
+        t_written = np.asarray(replay.time_s, dtype=float)
+        n = t_written.size
+        grid = np.arange(n) / fs
+        t = grid if np.array_equal(np.round(grid, 9), t_written) else t_written
+        t_plan = t - replay.plan_time_shift_s if replay.plan_time_shift_s else t
+    else:
+        n = int(np.floor((plan.end_s + tail_s) * fs)) + 1
+        t = np.arange(n) / fs
+        t_written = np.round(t, 9)
+        t_plan = t
+    inputs, accel_inputs = sensed_inputs(plan, t_plan, lat, g, effects)
+    t_on = t + power_on_s if power_on_s else t
+    if replay is not None and replay.temperature is not None:
+        temp = np.asarray(replay.temperature, dtype=float)
+    elif temperature_degc is not None:
+        temp = np.asarray(temperature_degc(t_on), dtype=float) * np.ones(n)
+    else:
+        temp = housing_temperature_degc(truth, t_on)  # warm-up of the housing
+    ctx = SimContext(t, inputs, truth, fs, rng, temp, inputs.trajectory.step_index, t_on, accel_inputs)
     gyro = np.zeros((n, 3))
     accel = np.zeros((n, 3))
     for eff in effects:
+        if getattr(type(eff), "stage", None) in ("clock", "table", "input"):
+            continue  # applied to the inputs above
         gyro, accel = eff.apply(ctx, gyro, accel)
-    imu = {"time_s": np.round(t, 9)}
+    imu = {"time_s": t_written}
     for i, ax in enumerate("xyz"):
         imu[f"gyro_{ax}"] = to_counts(gyro[:, i], truth.gyro.lsb, truth.gyro.lsb_unit, "gyro")
     for i, ax in enumerate("xyz"):
         imu[f"accel_{ax}"] = to_counts(accel[:, i], truth.accel.lsb, truth.accel.lsb_unit, "accel")
-    imu["temperature"] = np.round(temp + 0.02 * rng.standard_normal(n), 3)
-    imu["counter"] = np.arange(n, dtype=np.int64)
+    if replay is not None:
+        if replay.temperature is not None:
+            imu["temperature"] = np.asarray(replay.temperature)
+        if replay.counter is not None:
+            imu["counter"] = np.asarray(replay.counter)
+        table_df = replay.table_raw
+        offset = float("nan") if table_clock_offset_s is None else float(table_clock_offset_s)
+    else:
+        imu["temperature"] = np.round(temp + 0.02 * rng.standard_normal(n), 3)
+        imu["counter"] = np.arange(n, dtype=np.int64)
+        offset = float(table_clock_offset_s if table_clock_offset_s is not None else rng.uniform(0.2, 2.0))
+        if table_log:
+            tt = np.arange(0.0, plan.end_s + tail_s, 1.0 / table_rate_hz)
+            ttr = trajectory(plan, tt)  # the nominal (commanded) motion: table effects do not reach the log
+            table_df = pd.DataFrame(
+                {
+                    "time_s": np.round(tt + offset, 6),  # the table clock reads true (plan) time + offset
+                    "angle_deg": np.degrees(ttr.table_angle_rad) % 360.0,
+                    "rate_dps": np.degrees(ttr.table_rate_radps),
+                    "step_index": ttr.step_index,
+                }
+            )
     imu_df = pd.DataFrame(imu)
-
-    offset = float(table_clock_offset_s if table_clock_offset_s is not None else rng.uniform(0.2, 2.0))
-    table_df = None
-    if table_log:
-        tt = np.arange(0.0, plan.end_s + tail_s, 1.0 / table_rate_hz)
-        ttr = body_inputs(plan, tt, site.latitude_deg, g).trajectory
-        table_df = pd.DataFrame(
-            {
-                "time_s": np.round(tt + offset, 6),  # the table clock reads imu time + offset
-                "angle_deg": np.degrees(ttr.table_angle_rad) % 360.0,
-                "rate_dps": np.degrees(ttr.table_rate_radps),
-                "step_index": ttr.step_index,
-            }
-        )
+    channels = _channels(truth)
+    if "temperature" not in imu:
+        channels.pop("temperature")
     manifest = Manifest.model_validate(
         {
             "schema_version": SCHEMA_VERSION,
@@ -394,16 +417,18 @@ def simulate_run(
             "run_id": run_id,
             "test_kind": kind,
             "start_time_utc": start_time_utc,
-            "site": site.manifest_site(),
+            "site": site_dict,
             "sample_rate_hz": fs,
-            "channels": _channels(truth),
+            "channels": channels,
             "plan": plan.model_dump(),
             "power_cycle_index": power_cycle_index,
-            "table_id": "TT-3AX-01" if table_log else None,
+            "table_id": table_id,
             "notes": "simulated by imulab " + ",".join(e.name for e in effects),
         }
     )
-    return SimulatedRun(manifest, imu_df, table_df, truth, offset, tuple(e.name for e in effects))
+    params = tuple(e.to_dict() for e in effects if getattr(type(e), "family", ""))
+    return SimulatedRun(manifest, imu_df, table_df, truth, offset, tuple(e.name for e in effects), params,
+                        float(power_on_s), seed)
 
 
 def _template_kind(name: str) -> str:
@@ -435,12 +460,68 @@ def write_run(run: SimulatedRun, landing: Path, fmt: str = "parquet", truth_dir:
     (d / "manifest.json").write_text(run.manifest.model_dump_json(indent=2) + "\n")
     tdir = Path(truth_dir) if truth_dir else Path(landing) / "_truth"
     (tdir / run.manifest.device.id).mkdir(parents=True, exist_ok=True)
+    doc = {"truth": run.truth.to_json(), "table_clock_offset_s": run.table_clock_offset_s, "effects": list(run.effects)}
+    if run.effect_params or run.power_on_s:  # only then: the default archive's truth files stay as they were
+        doc.update(effect_params=list(run.effect_params), power_on_s=run.power_on_s, seed=run.seed)
     (tdir / run.manifest.device.id / f"{run.manifest.run_id}.json").write_text(
-        json.dumps({"truth": run.truth.to_json(), "table_clock_offset_s": run.table_clock_offset_s,
-                    "effects": list(run.effects)}, indent=1, default=float) + "\n"
+        json.dumps(doc, indent=1, default=float) + "\n"
     )
     (d / "_COMPLETE").write_text("")
     return d
+
+
+@dataclass(frozen=True)
+class TruthFile:
+    """A ``_truth/<device>/<run>.json`` read back: the device truth, the effect chain that made the run, the table
+    clock offset, the power-on time and (when recorded) the seed."""
+
+    truth: DeviceTruth
+    effects: tuple
+    table_clock_offset_s: float
+    power_on_s: float = 0.0
+    seed: int | None = None
+
+
+def truth_from_json(d: dict) -> DeviceTruth:
+    """Inverse of ``DeviceTruth.to_json``."""
+
+    def tup(v):
+        return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+    def triad(t: dict) -> TriadTruth:
+        t = dict(t)
+        t["noise"] = tuple(AllanParams(**a) for a in t["noise"])
+        return TriadTruth(**{k: (v if k == "noise" else tup(v)) for k, v in t.items()})
+
+    d = dict(d)
+    d["gyro"], d["accel"] = triad(d["gyro"]), triad(d["accel"])
+    return DeviceTruth(**{k: (v if k in ("gyro", "accel") else tup(v)) for k, v in d.items()})
+
+
+_BASE_EFFECTS = {"error_model": ErrorModel, "allan_noise": AllanNoise, "saturation": Saturation}
+
+
+def load_truth(path: str | Path) -> TruthFile:
+    """Read a truth file written by :func:`write_run`; the effect chain is rebuilt (registered families from their
+    parameters). A chain element that carries parameters but is not a registered family cannot be rebuilt."""
+    from assets_lib.sim.effects import EFFECTS, effect_from_dict
+
+    path = Path(path)
+    doc = json.loads(path.read_text())
+    params = list(doc.get("effect_params", []))
+    chain = []
+    for name in doc.get("effects", []):
+        if name in _BASE_EFFECTS:
+            chain.append(_BASE_EFFECTS[name]())
+        elif name in EFFECTS:
+            if not params or params[0].get("family") != name:
+                raise ValueError(f"{path}: effect {name!r} listed without its parameters in 'effect_params'")
+            chain.append(effect_from_dict(params.pop(0)))
+        else:
+            raise ValueError(f"{path}: effect {name!r} is neither a base effect {sorted(_BASE_EFFECTS)} nor a "
+                             f"registered family; it cannot be rebuilt")
+    return TruthFile(truth_from_json(doc["truth"]), tuple(chain), float(doc["table_clock_offset_s"]),
+                     float(doc.get("power_on_s", 0.0)), doc.get("seed"))
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from assets_lib.calibration.repeatability import STATIC_RUN_COLUMNS, static_terms_row
 from assets_lib.noise.allan import allan_deviations
 from assets_lib.noise.identification import fit_all, noise_table, plot_allan
 from assets_lib.records.validity import MODEL_INSIDE_CI_MIN  # one threshold for the gate and the record's status
@@ -36,7 +37,15 @@ def allan_deviation(key: str, inputs) -> StageOutput:
     summary = {}
     for _, r in noise[(noise.method == "fit") & noise.parameter.isin(["N", "B"])].iterrows():
         summary[f"{r.channel}_{r.parameter}_{r.unit_lab}"] = float(r.value_lab)
-    return StageOutput(tables={"allan": allan, "noise": noise}, meta={"model_inside_ci": inside, "rate_hz": rate_hz},
+    m = inputs.meta("ingested_run")
+    dur = len(imu) / rate_hz
+    units = {c: ("rad/s" if c in GYRO_COLUMNS else "m/s^2") for c in channels}
+    static_terms = pd.DataFrame([static_terms_row(m.get("run_id", key), int(m.get("power_cycle_index", 0) or 0), c,
+                                                  float(imu[c].mean()), dur, fits[c], units[c]) for c in channels],
+                                columns=STATIC_RUN_COLUMNS)
+    warnings = [w for c in channels for w in fits[c].warnings]
+    return StageOutput(tables={"allan": allan, "noise": noise, "static_terms": static_terms},
+                       meta={"model_inside_ci": inside, "rate_hz": rate_hz, "warnings": warnings},
                        summary=summary, plots=plots)
 
 

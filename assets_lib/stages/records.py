@@ -26,7 +26,7 @@ RESERVED = {"meta", "records"}  # file stems the version folder already uses
 
 
 @stage("calibration_record", level="device", group="records", code_version="1",
-       upstream=("ingested_run", "gyro_rate_fit", "accel_multiposition_fit", "allan_deviation"),
+       upstream=("ingested_run", "gyro_rate_fit", "accel_multiposition_fit", "tablefree_fit", "allan_deviation"),
        kinds=("json", "html", "parquet"))
 def calibration_record(device: str, inputs) -> StageOutput | None:
     """Audited calibration record (JSON, hash-chained per device) and HTML certificate for every run of a device."""

@@ -1,7 +1,7 @@
 """The stages of imulab, in dependency order: the one list the Dagster code location, ``imulab verify`` and the
 reprocessing planner walk. A new stage is a module in this package plus one line here."""
 
-from assets_lib.stages import calibration, fleet, ingest, noise, records, repeatability, sim_to_real
+from assets_lib.stages import calibration, fleet, ingest, noise, records, repeatability, sim_to_real, tablefree
 from assets_lib.stages.engine import StageGraph
 
 STAGES = StageGraph([
@@ -9,6 +9,7 @@ STAGES = StageGraph([
     calibration.plateaus,
     calibration.gyro_rate_fit,
     calibration.accel_multiposition_fit,
+    tablefree.tablefree_fit,
     noise.allan_deviation,
     repeatability.repeatability,
     records.calibration_record,

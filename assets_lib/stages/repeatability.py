@@ -5,17 +5,23 @@ from __future__ import annotations
 
 import pandas as pd
 
-from assets_lib.calibration.repeatability import repeatability_table
+from assets_lib.calibration.repeatability import REPEATABILITY_COLUMNS, repeatability_table, static_repeatability
 from assets_lib.stages.spec import StageOutput, stage
 
 
 @stage("repeatability", level="device", group="calibration", code_version="1",
-       upstream=["gyro_rate_fit", "accel_multiposition_fit"])
+       upstream=["gyro_rate_fit", "accel_multiposition_fit", "allan_deviation"])
 def repeatability(device: str, inputs) -> StageOutput | None:
     """Turn-on to turn-on spread of each bias and scale factor of one device, with the number of runs used."""
     frames = [inputs.table(a, "coefficients", key=k)
               for a in ("gyro_rate_fit", "accel_multiposition_fit") for k in inputs.keys_of(a)]
-    if not frames:
+    # power-cycled static runs: turn-on bias and noise-term repeatability (seed 000 eq. 23)
+    static = [inputs.table("allan_deviation", "static_terms", key=k) for k in inputs.keys_of("allan_deviation")
+              if inputs.has_table("allan_deviation", "static_terms", key=k)]
+    if not frames and len(static) < 2:
         return None
-    table = repeatability_table(pd.concat(frames, ignore_index=True))
-    return StageOutput(tables={"repeatability": table}, summary={"n_rows": len(table)})
+    tables = {"repeatability": (repeatability_table(pd.concat(frames, ignore_index=True)) if frames
+                                else pd.DataFrame(columns=REPEATABILITY_COLUMNS))}
+    if len(static) >= 2:
+        tables["static_repeatability"] = static_repeatability(pd.concat(static, ignore_index=True))
+    return StageOutput(tables=tables, summary={f"n_rows_{k}": len(v) for k, v in tables.items()})

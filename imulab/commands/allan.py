@@ -157,13 +157,16 @@ def _jsonable(v):
 @click.option("--fit/--no-fit", default=True, show_default=True, help="Fit the IEEE 952 noise terms.")
 @click.option("--markov", is_flag=True, help="Add a first-order Markov term to the fit.")
 @click.option("--sinusoid", is_flag=True, help="Add a sinusoidal term to the fit.")
+@click.option("--tau-min", default="auto", show_default=True,
+              help="Shortest tau [s] the noise fit uses, or 'auto' (the first tau from which the model matches the curve).")
+@click.option("--tau-max", type=float, default=None, help="Longest tau [s] the noise fit uses (default: m <= N/4).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), help="Write a log-log PNG.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path), help="Write everything as JSON.")
 @click.option("--stream-rows", type=int, default=STREAM_ROWS_DEFAULT, show_default=True,
               help="Stream parquet files with more rows than this (bounded memory).")
 @click.option("--backend", type=click.Choice(["auto", "numba", "numpy"]), default="auto", show_default=True)
 def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, param_ci, fit, markov, sinusoid,
-            plot_path, json_path, stream_rows, backend):
+            tau_min, tau_max, plot_path, json_path, stream_rows, backend):
     """Allan deviation (overlapping, exact) with intervals, and the fitted noise terms, of a static record."""
     taus_v = _parse_taus(taus)
     suffix = file.suffix.lower()
@@ -249,7 +252,7 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
                 y = pd.to_numeric(df[c], errors="coerce").to_numpy()
                 r = al.allan_deviation(y, rate_hz, taus_v, data_type=data_type, ci_level=ci_level, backend=backend,
                                        channel=c, unit=info[c][1])
-                results[c] = al._scaled(r, info[c][0]) if info[c][0] != 1.0 else r
+                results[c] = al.scaled_result(r, info[c][0]) if info[c][0] != 1.0 else r
     except ValueError as e:
         raise click.ClickException(str(e)) from None
 
@@ -258,11 +261,16 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
         _print_allan(r, info[c][1])
         if fit:
             try:
-                fits[c] = ni.fit_noise(r, markov=markov, sinusoid=sinusoid, ci_level=param_ci, sensor=info[c][2])
+                tmin = tau_min if tau_min == "auto" else float(tau_min)
+                fits[c] = ni.fit_noise(r, markov=markov, sinusoid=sinusoid, ci_level=param_ci, sensor=info[c][2],
+                                       tau_min_s=tmin, tau_max_s=tau_max)
             except ValueError as e:
                 click.echo(f"  noise fit skipped: {e}")
                 continue
             _print_fit(fits[c])
+            click.echo(f"  fit tau range {fits[c].tau_range_s[0]:.4g}-{fits[c].tau_range_s[1]:.4g} s")
+            for w in fits[c].warnings:
+                click.echo(f"WARNING {w}", err=True)
 
     if plot_path is not None:
         ni.plot_allan(results, fits or None, path=plot_path, title=file.name)
@@ -288,11 +296,13 @@ def command(file: Path, columns, rate_hz, units, taus, data_type, ci_level, para
             if c in fits:
                 f = fits[c]
                 entry["noise"] = [
-                    _jsonable({k: getattr(p, k) for k in p.__dataclass_fields__})
+                    _jsonable(p.as_dict())
                     for p in list(f.parameters) + list(f.slope_parameters)
                 ]
                 entry["fit"] = {"terms": list(f.terms), "theta": _jsonable(f.theta),
-                                "theta_cov": _jsonable(f.theta_cov), "chi2": _jsonable(f.chi2), "dof": f.dof}
+                                "theta_cov": _jsonable(f.theta_cov), "chi2": _jsonable(f.chi2), "dof": f.dof,
+                                "tau_range_s": _jsonable(f.tau_range_s), "discrepancy": _jsonable(f.discrepancy),
+                                "outside_tau_ranges": _jsonable(f.outside_tau_ranges), "warnings": list(f.warnings)}
             doc["channels"][c] = entry
         json_path.write_text(json.dumps(doc, indent=1))
         click.echo(f"json written to {json_path}")

@@ -70,8 +70,17 @@ def _plausible_check(asset: str):
     return _check
 
 
+@dg.asset_check(asset="tablefree_fit", name="tablefree_fit_matches_poses", blocking=True, partitions_def=captures,
+                description="Table-free fit: static |f| - g RMS within tolerance of local gravity, every term observable.")
+def tablefree_fit_matches_poses(context: dg.AssetCheckExecutionContext, store: ParquetStore) -> dg.AssetCheckResult:
+    st = store.store
+    bad = [f"{k}: {p}" for k in _keys(context, st, "tablefree_fit") if (p := st.read_meta("tablefree_fit", k).get("problem"))]
+    return dg.AssetCheckResult(passed=not bad, metadata={"failures": "\n".join(bad) or "none"})
+
+
 CHECKS = [
     enough_plateaus_kept,
+    tablefree_fit_matches_poses,
     *[_chi2_check(a) for a in ("gyro_rate_fit", "accel_multiposition_fit")],
     *[_plausible_check(a) for a in ("gyro_rate_fit", "accel_multiposition_fit")],
 ]

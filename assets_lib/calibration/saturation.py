@@ -1,0 +1,114 @@
+"""Saturated plateaus of a rate sweep: flat tops beyond full scale and means biased by clipping at the rail."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+
+def detect_saturation(
+    x: np.ndarray,
+    y: np.ndarray,
+    sigma: np.ndarray | None = None,
+    *,
+    gain_ratio: float = 0.5,
+    n_sigma: float = 5.0,
+    rail: bool = True,
+    sample_sigma: np.ndarray | None = None,
+    x_unit: str = "",
+    x_factor: float = 1.0,
+) -> dict[int, str]:
+    """Saturation at both ends of a rate sweep; returns {row: reason} (flat tops beyond the input range, [IEEE952] / [IEEE1293] input limits; [SEED001] drops its 90 deg/s point by hand).
+
+    1. Flat top. Sort by input; take the robust (Theil-Sen) gain K of the sweep. Walking inward from each end,
+       a plateau is saturated when its incremental gain to the next inner plateau is below ``gain_ratio`` * K
+       (the output has stopped following the input: no sensor loses half its gain inside its linear range)
+       *and* the output shortfall K dx - dy exceeds ``n_sigma`` standard errors of the difference (sems when
+       given, else the robust residual scale of the sweep, 1.4826 MAD).
+    2. At the rail (``rail=True``). Once an end has a flat top, its level is the rail. Walking further inward, a
+       plateau whose straight-line prediction (Theil-Sen on the remaining plateaus) comes within 3 sample
+       standard deviations of the rail has samples clipped, so its mean is biased towards the rail: it is
+       saturated too. The sample standard deviation is ``sample_sigma`` (e.g. sem * sqrt(n_samples)) or the
+       robust residual scale.
+
+    ``x_factor``/``x_unit`` only format the reason (e.g. rad/s shown in deg/s).
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    idx = np.flatnonzero(ok)
+    out: dict[int, str] = {}
+    if len(idx) < 4:
+        return out
+    xs, ys = x[idx], y[idx]
+    if np.ptp(xs) <= 0:
+        return out
+    K = stats.theilslopes(ys, xs).slope
+    if K == 0 or not np.isfinite(K):
+        return out
+    a = np.median(ys - K * xs)
+    res = ys - a - K * xs
+    s_rob = 1.4826 * np.median(np.abs(res - np.median(res)))
+    if sigma is not None:
+        sg = np.asarray(sigma, float)[idx]
+        sg = np.where(np.isfinite(sg) & (sg > 0), sg, s_rob)
+    else:
+        sg = np.full(len(idx), s_rob)
+    sg = np.maximum(sg, 1e-12 * (np.max(np.abs(ys)) + 1e-300))
+    if sample_sigma is not None:
+        ss = np.asarray(sample_sigma, float)[idx]
+        ss = np.where(np.isfinite(ss) & (ss > 0), ss, np.maximum(s_rob, sg))
+    else:
+        ss = np.maximum(s_rob, sg)
+    order = np.argsort(xs, kind="stable")
+    max_flag = len(idx) // 2
+
+    def walk(seq):
+        flagged = []
+        for m in range(len(seq) - 1):
+            j, i_in = seq[m], seq[m + 1]
+            dx = xs[j] - xs[i_in]
+            if dx == 0:
+                break
+            dy = ys[j] - ys[i_in]
+            local = dy / dx
+            shortfall = np.sign(K) * (K * dx - dy) * np.sign(dx)
+            sd = np.sqrt(sg[j] ** 2 + sg[i_in] ** 2)
+            if local / K < gain_ratio and shortfall > n_sigma * sd and len(flagged) < max_flag:
+                flagged.append((j, local, shortfall / sd))
+            else:
+                break
+        return flagged
+
+    ends = [walk(list(order[::-1])), walk(list(order))]
+    for flagged in ends:
+        for j, local, nsd in flagged:
+            out[int(idx[j])] = (
+                f"saturated: at input {xs[j] * x_factor:+.6g} {x_unit} the output has stopped following the input "
+                f"(incremental gain {local / K:.2f} of the sweep's robust gain, shortfall {nsd:.0f} sigma); "
+                "beyond the linear range"
+            )
+    if rail and any(ends):
+        keep = np.array([int(idx[k]) not in out for k in range(len(idx))])
+        if keep.sum() >= 3:
+            ts = stats.theilslopes(ys[keep], xs[keep])
+            line = ts.intercept + ts.slope * xs
+            for flagged, seq in zip(ends, (list(order[::-1]), list(order))):
+                if not flagged:
+                    continue
+                y_rail = float(np.median([ys[j] for j, _, _ in flagged]))
+                direction = np.sign(y_rail - np.median(ys))
+                inner = [k for k in seq if int(idx[k]) not in out]
+                for k in inner:
+                    gap = direction * (y_rail - line[k])  # > 0: the line stays inside the rail
+                    if gap < 3.0 * ss[k] and len(out) < max_flag:
+                        where = (f"comes within {gap / ss[k]:.1f} sample standard deviations of" if gap >= 0 else
+                                 f"lies {-gap / ss[k]:.1f} sample standard deviations beyond")
+                        out[int(idx[k])] = (
+                            f"saturated: at input {xs[k] * x_factor:+.6g} {x_unit} the straight-line output {where} "
+                            f"the rail set by the flat-top plateau(s) ({y_rail:.6g}): at the rail, clipped samples "
+                            "bias the mean"
+                        )
+                    else:
+                        break
+    return out

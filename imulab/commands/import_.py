@@ -1,0 +1,62 @@
+"""``imulab import``: convert a third-party IMU log into a run of the raw-log contract in a landing folder."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+
+def _options(pairs) -> dict:
+    out = {}
+    for p in pairs:
+        if "=" not in p:
+            raise click.BadParameter(f"expected KEY=VALUE, got {p!r}", param_hint="-o/--option")
+        k, v = p.split("=", 1)
+        out[k.strip()] = v.strip()
+    return out
+
+
+@click.command("import")
+@click.argument("fmt", metavar="FORMAT", type=click.Choice(["profile", "imu_tk", "imucal", "ros"]))
+@click.argument("sources", nargs=-1, required=True, type=click.Path(exists=True))
+@click.option("--landing", required=True, type=click.Path(file_okay=False), help="Landing folder to write <device>/<run>/ into.")
+@click.option("--device-id", required=True, help="Device id (folder name, manifest device.id).")
+@click.option("--run-id", default=None, help="Run id (default: the first source's file stem).")
+@click.option("--model", "device_model", default="unknown", show_default=True, help="Device model.")
+@click.option("--grade", default="consumer", show_default=True,
+              type=click.Choice(["consumer", "industrial", "tactical", "navigation"]))
+@click.option("--latitude-deg", default=0.0, show_default=True, type=float, help="Site latitude (earth rate, normal gravity).")
+@click.option("--height-m", default=0.0, show_default=True, type=float)
+@click.option("--gravity-mps2", default=None, type=float, help="Measured local gravity (else WGS-84 normal gravity).")
+@click.option("--start-time-utc", default=None, help="ISO 8601 UTC time of the first sample (ROS sources carry it).")
+@click.option("--power-cycle-index", default=0, show_default=True, type=int)
+@click.option("-o", "--option", "opts", multiple=True, metavar="KEY=VALUE",
+              help="Format option, e.g. -o profile=p.json, -o accel_lsb=0.0024, -o topic=/imu, -o sample_rate_hz=204.8.")
+def command(fmt, sources, landing, device_id, run_id, device_model, grade, latitude_deg, height_m, gravity_mps2,
+            start_time_utc, power_cycle_index, opts):
+    """Read SOURCES in FORMAT and write one contract run (manifest.json, imu.parquet, _COMPLETE) to LANDING.
+
+    \b
+    Formats (see docs/realdata.md):
+      profile  CSV/parquet + a profile JSON (-o profile=FILE; schema raw_schemas/import_profile.schema.json)
+      imu_tk   ACC_FILE GYRO_FILE text logs (t x y z); counts need -o accel_lsb=.. -o gyro_lsb=..
+      imucal   annotated Ferraris session CSV; -o sample_rate_hz=.. (+ lsb options for counts)
+      ros      sensor_msgs/Imu from a ROS 1 bag, ROS 2 bag folder or .mcap file (-o topic=..)
+
+    The sources are only read. Bad input stops with an error naming the file, the row or field, and what was
+    expected (exit status 2).
+    """
+    from raw_schemas.errors import RawDataError
+    from raw_schemas.importers import RunMeta, import_run
+
+    meta = RunMeta(device_id=device_id, run_id=run_id or Path(sources[0]).stem.replace(" ", "_"),
+                   device_model=device_model, grade=grade, latitude_deg=latitude_deg, height_m=height_m,
+                   gravity_mps2=gravity_mps2, start_time_utc=start_time_utc, power_cycle_index=power_cycle_index)
+    try:
+        out = import_run(fmt, list(sources), landing, meta, _options(opts))
+    except RawDataError as e:
+        click.echo(f"FAIL import {fmt}: {e}", err=True)
+        sys.exit(2)
+    click.echo(f"ok   {out}")
