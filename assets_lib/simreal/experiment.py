@@ -103,6 +103,11 @@ def _lsb_si(manifest) -> np.ndarray:
 def run_inputs(manifest, imu: pd.DataFrame, table: pd.DataFrame | None, power_on_utc) -> RunInputs:
     """Recorded inputs of a run; plan time = IMU time (the simulated archives; segmentation confirms it)."""
     plan = manifest.plan
+    missing = [k for k, st in enumerate(plan.steps) if getattr(st, "orientation_b2l", None) is None]
+    if missing:
+        raise ValueError(f"run {manifest.device.id}/{manifest.run_id} ({manifest.test_kind}): plan steps {missing} have "
+                         "no orientation (hand-placed / free poses), so the twin cannot be driven by the recorded "
+                         "inputs; the sim-to-real diagnosis needs plans with known orientations (table runs)")
     t = imu["time_s"].to_numpy(float)
     g = site_gravity_mps2(manifest.site)
     bi = body_inputs(plan, t, manifest.site.latitude_deg, g)
