@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "apply": ("imulab.commands.apply", "Calibrate IMU data with a calibration record or device calibration."),
     "records": ("imulab.commands.records", "List a device's records; pick the one valid at a date (staleness, drift)."),
     "export": ("imulab.commands.export", "Export a calibration for Kalibr/OpenVINS, imucal, or firmware (JSON, C header)."),
+    "diagnose": ("imulab.commands.diagnose", "Sim-to-real gap diagnosis: where, which effect, how far it shrinks."),
 }
 
 

@@ -14,12 +14,12 @@ import dagster as dg
 from assets_lib.stages.engine import StageGraph
 from assets_lib.stages.registry import STAGES
 from pipelines import assets, checks, jobs
-from pipelines.defs import calibration, fleet, noise, records, schedules, sensors
+from pipelines.defs import calibration, diagnosis, fleet, noise, records, schedules, sensors
 from pipelines.resources import LabArchive, ParquetStore
 
 DATA_DIR = os.environ.get("IMULAB_DATA", "imulab_data")
 #: the checks of the stages (each names its stage's asset; a graph without that stage has no such check)
-STAGE_CHECKS = [*calibration.CHECKS, *noise.CHECKS, *records.CHECKS, *fleet.CHECKS]
+STAGE_CHECKS = [*calibration.CHECKS, *noise.CHECKS, *records.CHECKS, *fleet.CHECKS, *diagnosis.CHECKS]
 
 
 def default_paths() -> tuple[str, str]:

@@ -42,8 +42,8 @@ def test_new_module_changes_no_version_and_an_edit_changes_only_its_stages(tmp_p
     before = _digests(root)
     assert before == {s.name: source_digest(s.compute.__module__) for s in STAGES}  # the copy digests like the repo
     (root / "assets_lib" / "sim" / "new_effect.py").write_text("")
-    (root / "assets_lib" / "simreal").mkdir()
-    (root / "assets_lib" / "simreal" / "__init__.py").write_text('"""A new package nobody imports yet."""\n')
+    (root / "assets_lib" / "newpkg").mkdir()
+    (root / "assets_lib" / "newpkg" / "__init__.py").write_text('"""A new package nobody imports yet."""\n')
     assert _digests(root) == before
 
     with open(root / "assets_lib" / "calibration" / "rate_fit.py", "a") as f:

@@ -1,7 +1,7 @@
 """The stages of imulab, in dependency order: the one list the Dagster code location, ``imulab verify`` and the
 reprocessing planner walk. A new stage is a module in this package plus one line here."""
 
-from assets_lib.stages import calibration, fleet, ingest, noise, records, repeatability, tablefree
+from assets_lib.stages import calibration, fleet, ingest, noise, records, repeatability, sim_to_real, tablefree
 from assets_lib.stages.engine import StageGraph
 
 STAGES = StageGraph([
@@ -14,4 +14,5 @@ STAGES = StageGraph([
     repeatability.repeatability,
     records.calibration_record,
     fleet.fleet_drift_stage,
+    sim_to_real.sim_to_real,
 ])

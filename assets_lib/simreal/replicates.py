@@ -1,0 +1,80 @@
+"""Replicates of the twin driven by the recorded inputs, pushed through the same chain, in parallel processes.
+
+Each replicate r of a device: every run simulated by ``twin.simulate_run_imu`` with the seed (seed, r, run),
+processed by ``experiment.process_run`` (segmentation and library fits), then turned into a ``Design`` and its
+views. Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
+copy-on-write, never pickled); results depend only on (seed, r), so they are identical for any worker count.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from assets_lib.simreal.design import Design, build_design
+from assets_lib.simreal.experiment import process_run
+from assets_lib.simreal.twin import TwinModel, simulate_run_imu
+from assets_lib.simreal.views import compute_views
+
+_STATE: dict = {}
+
+
+@dataclass(frozen=True, eq=False)
+class Replicate:
+    index: int
+    design: Design
+    views: dict
+
+
+def _stable(text: str) -> int:
+    import hashlib
+
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
+
+
+def one_replicate(r: int, seed: int, twin: TwinModel, runs, windows, rk) -> Replicate:
+    imus, proc = {}, {}
+    for inp in runs:
+        rng = np.random.default_rng([seed, r, _stable(inp.run_id)])
+        imu = simulate_run_imu(twin, inp, rng)
+        imus[inp.run_id] = imu
+        proc[inp.run_id] = process_run(inp, imu)
+    d = build_design(runs, proc, twin, imus, windows, rk)
+    return Replicate(r, d, compute_views(d, proc))
+
+
+def _worker(args):
+    r, seed, key = args
+    st = _STATE[key]
+    return one_replicate(r, seed, st["twin"], st["runs"], st["windows"], st["rk"])
+
+
+def default_workers() -> int:
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+def run_replicates(twin: TwinModel, runs, windows, rk, n: int, seed: int, workers: int | None = None,
+                   progress=None, key: str = "base") -> list[Replicate]:
+    """``n`` replicates (indices 0..n-1) of ``twin``; ``progress(done, n)`` after each."""
+    workers = default_workers() if workers is None else workers
+    _STATE[key] = dict(twin=twin, runs=runs, windows=windows, rk=rk)
+    out = []
+    try:
+        if workers <= 1 or n <= 1:
+            for r in range(n):
+                out.append(_worker((r, seed, key)))
+                if progress:
+                    progress(len(out), n)
+        else:
+            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork")) as ex:
+                for rep in ex.map(_worker, [(r, seed, key) for r in range(n)]):
+                    out.append(rep)
+                    if progress:
+                        progress(len(out), n)
+    finally:
+        _STATE.pop(key, None)
+    return out

@@ -1,0 +1,149 @@
+"""Where the gap lies: a registry of residual views, each calibrated by its sim-vs-sim distribution.
+
+simreal.md sec. 3: compute every view on the real data and on R replicates of the twin pushed through the same
+pipeline; z = (s - mean_rep) / sd_rep; p from the predictive Student-t with R - 1 degrees of freedom
+(z / sqrt(1 + 1/R), which accounts for the replicate mean and sd being estimated); Benjamini-Hochberg q over all
+views (Benjamini & Hochberg 1995). A view is significant when q <= ``Q_SIG`` and |z| >= ``Z_SIG`` (sec. 8:
+"post-fix view flag |z| > 4 or BH q < 0.01"; both are required here because z from 20 replicates has heavy tails).
+
+Registry (view name -> what it is; ``group`` stochastic views route a gap to the noise model):
+
+- ``plateau_residual``: whitened, nuisance-projected residual of one plateau mean (run, channel, step);
+- ``residual_vs_*``: projection of a run's plateau residuals (or the device's, run null) on a signature:
+  rate squared, rate cubed, |rate|, temperature, rate x temperature, time since power-on (linear and
+  exponential), visit order, static specific force squared, centripetal (accelerometers in rate runs);
+- ``table_angle_harmonic_{1,2}``, ``table_wobble_1rev``: table-angle harmonics inside rate windows;
+- ``clock_drift``: table/IMU clock drift of a run;
+- ``fit_chi2``: reduced chi-square of the library fit of a run and channel (scatter);
+- ``allan_band_tau*``: log Allan deviation of the long static residual per octave tau (stochastic);
+- ``residual_spectrum_peak``: largest spectral line of the static residual over the median PSD.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from assets_lib.simreal.design import ATOMS, Design
+from assets_lib.simreal.effects import CHANNEL_NAMES
+
+Q_SIG = 0.01
+Z_SIG = 4.0
+STOCHASTIC = ("allan_band", "fit_chi2")
+
+_ATOM_VIEWS = {
+    "temperature_bias": ["residual_vs_temperature"],
+    "temperature_scale_factor": ["residual_vs_rate_x_temperature"],
+    "bias_ramp": ["residual_vs_time_since_power_on"],
+    "g_sensitivity": ["static_residual_vs_fx2", "static_residual_vs_fy2", "static_residual_vs_fz2"],
+    "scale_factor_nonlinearity": ["residual_vs_rate_squared", "residual_vs_rate_cubed"],
+    "scale_factor_asymmetry": ["residual_vs_abs_rate"],
+    "lever_arm": ["accel_rate_run_centripetal_x", "accel_rate_run_centripetal_y", "accel_rate_run_centripetal_z"],
+}
+_JOINT_VIEWS = {"table_rate_error": [("table_angle_harmonic_1", (0, 1)), ("table_angle_harmonic_2", (2, 3))],
+                "table_wobble": [("table_wobble_1rev", (0, 1))], "timebase_error": [("clock_drift", (0,))]}
+
+
+def is_stochastic(view: str) -> bool:
+    return view.startswith(STOCHASTIC)
+
+
+def compute_views(d: Design, processed: dict) -> dict:
+    """All view statistics of one realisation: {(view, run_id|None, channel|None, step|None): value}."""
+    out = {}
+    G = d.gram.sum(1)
+    b = d.xty.sum(1)
+    for ai, at in enumerate(ATOMS):
+        ch = None if at.channel is None else CHANNEL_NAMES[at.channel]
+        if at.family.startswith("temperature") and at.shape:
+            continue
+        if at.family == "warmup_bias":
+            if at.shape != 300.0:
+                continue
+            names = [("residual_vs_time_since_power_on_exp", (0,))]
+        elif at.family in _ATOM_VIEWS:
+            names = [(n, (k,)) for k, n in enumerate(_ATOM_VIEWS[at.family])]
+        else:
+            names = _JOINT_VIEWS.get(at.family, [])
+        for name, ks in names:
+            cols = [at.cols[k] for k in ks]
+            for ri, run in enumerate(d.run_ids):
+                gg = np.array([G[ri, c, c] for c in cols])
+                if np.all(gg > 1e-20):
+                    out[(name, run, ch, None)] = float(np.sqrt(np.sum(b[ri, cols] ** 2 / gg))) if len(cols) > 1 \
+                        else float(b[ri, cols[0]] / np.sqrt(gg[0]))
+            gg = np.array([G[:, c, c].sum() for c in cols])
+            if np.all(gg > 1e-20) and len(d.run_ids) > 1:
+                bb = b[:, cols].sum(0)
+                out[(name, None, ch, None)] = float(np.sqrt(np.sum(bb**2 / gg))) if len(cols) > 1 \
+                    else float(bb[0] / np.sqrt(gg[0]))
+    for (name, run, ch), (num, nv) in d.extra_t.items():
+        out[(name, run, ch, None)] = num / np.sqrt(nv)
+    for r in d.rows.itertuples(index=False):
+        if r.block == "A":
+            out[("plateau_residual", r.run_id, r.channel, r.step_index)] = r.y
+    for run, pr in processed.items():
+        fr = pr.fit_residuals
+        if len(fr):
+            for ch, g in fr[fr["used"]].groupby("channel"):
+                z = g["std_residual"].to_numpy(float)
+                z = z[np.isfinite(z) & (np.abs(z) < 1e6)]
+                if z.size >= 3:
+                    out[("fit_chi2", run, ch, None)] = float(np.log(np.median(z**2) + 1e-12))
+        for ch, (tau, adev) in pr.allan.items():
+            for t, a in zip(tau, adev):
+                if a > 0:
+                    out[(f"allan_band_tau{t:.3g}s", run, ch, None)] = float(np.log10(a))
+        for ch, (v, _) in pr.spectrum_peak.items():
+            out[("residual_spectrum_peak", run, ch, None)] = v
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class ViewTable:
+    table: pd.DataFrame  # view, run_id, channel, step_index, real, rep_mean, rep_sd, z, p, q, significant, stochastic
+
+    def significant(self, stochastic: bool | None = None) -> pd.DataFrame:
+        t = self.table[self.table["significant"]]
+        if stochastic is None:
+            return t
+        return t[t["stochastic"] == stochastic]
+
+
+def bh_q(p: np.ndarray) -> np.ndarray:
+    """Benjamini-Hochberg adjusted p-values (q-values)."""
+    p = np.asarray(p, float)
+    n = p.size
+    if n == 0:
+        return p
+    order = np.argsort(p)
+    ranked = p[order] * n / np.arange(1, n + 1)
+    q = np.minimum.accumulate(ranked[::-1])[::-1]
+    out = np.empty(n)
+    out[order] = np.clip(q, 0, 1)
+    return out
+
+
+def calibrate(real: dict, reps: list[dict], min_reps: int = 5) -> ViewTable:
+    """z, p, q of every real view against its replicate distribution (module docstring)."""
+    rows = []
+    for key, s in real.items():
+        vals = np.array([r[key] for r in reps if key in r and np.isfinite(r[key])])
+        if vals.size < min_reps or not np.isfinite(s):
+            continue
+        m, sd = float(vals.mean()), float(vals.std(ddof=1))
+        R = vals.size
+        if sd <= 0:
+            sd = max(abs(m) * 1e-12, 1e-300)
+        z = (s - m) / sd
+        p = float(2 * stats.t.sf(abs(z) / np.sqrt(1 + 1 / R), R - 1))
+        rows.append((key[0], key[1], key[2], key[3], s, m, sd, z, p))
+    t = pd.DataFrame(rows, columns=["view", "run_id", "channel", "step_index", "real", "rep_mean", "rep_sd", "z", "p"])
+    t["q"] = bh_q(t["p"].to_numpy())
+    t["stochastic"] = [is_stochastic(v) for v in t["view"]]
+    t["significant"] = (t["q"] <= Q_SIG) & (t["z"].abs() >= Z_SIG)
+    t = t.reindex(t["z"].abs().sort_values(ascending=False).index).reset_index(drop=True)
+    return ViewTable(t)

@@ -1,0 +1,401 @@
+"""Withheld-effect benchmark of the sim-to-real diagnosis (issue 12; docs/simreal.md sec. 6).
+
+    python benchmarks/withheld_effects.py generate --tier quick --out /tmp/wh        # archives + sealed truth
+    python benchmarks/withheld_effects.py diagnose --root /tmp/wh --replicates 8     # reports (diagnoser sees landing/ only)
+    python benchmarks/withheld_effects.py score --root /tmp/wh                       # reads reports + truth only
+    python benchmarks/withheld_effects.py all --tier quick --out /tmp/wh             # the three steps
+
+Generator: one device per case, written in the raw-log contract to ``<root>/landing/<device>/<run>/`` by the
+library simulator (3 power cycles of quick_rate + quick_24_position, one long static), with a *sealed* effect
+injected into the raw streams through the simulator's effect chain in forms that differ from the diagnoser's
+regressors: the temperature effects act on a lagged die temperature (first-order lag 150 s) while the log shows
+the chamber thermometer; the nonlinearity is compressive (tanh); the table ripple is twice per revolution on the
+true motion with a nominal table log; warm-up is a sum of two exponentials; lever arm includes the tangential
+term. Temperature: a chamber profile that differs per run (so temperature is not a function of time), except in
+the ``confounded`` cases (self-heating only: temperature rises with time since power-on). The truth goes to
+``<root>/truth/<device>.json`` with its sha256 in ``<root>/truth/SEALED.sha256``; the diagnoser is pointed at
+``<root>/landing`` only. Scorer: reads ``<root>/reports/<device>.json`` and the truth, nothing else.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import time
+from dataclasses import dataclass
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from assets_lib.sim.simulator import (  # noqa: E402
+    DEFAULT_EFFECTS,
+    example_device,
+    simulate_run,
+    write_run,
+)
+
+DEG = np.pi / 180
+LAG_S = 150.0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# temperature profile (recorded) and the die temperature the sensor feels
+# ----------------------------------------------------------------------------------------------------------
+def chamber_profile(t: np.ndarray, run_seed: int, confounded: bool) -> np.ndarray:
+    if confounded:
+        return 25.0 + 4.0 * (1 - np.exp(-t / 600.0))  # self-heating only
+    rng = np.random.default_rng(run_seed)
+    per = rng.uniform(400, 900)
+    ph = rng.uniform(0, 2 * np.pi)
+    return 25.0 + rng.uniform(-2, 2) + 3.0 * np.sin(2 * np.pi * t / per + ph) + 0.5 * (1 - np.exp(-t / 600.0))
+
+
+def lagged(t: np.ndarray, T: np.ndarray, tau: float = LAG_S) -> np.ndarray:
+    from scipy.signal import lfilter
+
+    dt = float(np.median(np.diff(t)))
+    a = np.exp(-dt / tau)
+    y = lfilter([1 - a], [1, -a], T - T[0]) + T[0]
+    return y
+
+
+# ----------------------------------------------------------------------------------------------------------
+# sealed effects (simulator SensorEffect protocol: apply(ctx, gyro, accel))
+# ----------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Hidden:
+    kind: str
+    params: dict
+    t_on0_s: float = 0.0  # run start minus power-on
+    run_seed: int = 0
+    confounded: bool = False
+    name: str = "sensor"
+
+    def apply(self, ctx, gyro, accel):
+        p = self.params
+        t = ctx.t_s
+        g, a = gyro.copy(), accel.copy()
+        w = ctx.inputs.omega_b_radps
+        f = ctx.inputs.f_b_mps2
+        tr = ctx.inputs.trajectory
+        wt = tr.table_rate_radps
+        u = np.einsum("nji,j->ni", tr.c_b2l, np.array([0.0, 0.0, 1.0]))
+        T = chamber_profile(t, self.run_seed, self.confounded)
+        Td = lagged(t, T)
+        j = p.get("channel", 2)
+        out = g if j < 3 else a
+        jj = j % 3
+        k = self.kind
+        if k == "temperature_bias":
+            out[:, jj] += p["k"] * (Td - 25.0)
+        elif k == "temperature_scale_factor":
+            x = w[:, jj] if j < 3 else f[:, jj]
+            out[:, jj] += p["k"] * x * (Td - 25.0)
+        elif k == "warmup_bias":
+            ton = t + self.t_on0_s
+            out[:, jj] += p["a"] * (0.6 * np.exp(-ton / 200.0) + 0.4 * np.exp(-ton / 900.0))
+        elif k == "bias_ramp":
+            out[:, jj] += p["k"] * (t + self.t_on0_s)
+        elif k == "g_sensitivity":
+            out[:, jj] += p["k"] * f[:, jj] ** 2
+        elif k == "scale_factor_nonlinearity":  # compressive: w -> FS tanh(w/FS)
+            fs = p["fs"]
+            out[:, jj] += fs * np.tanh(w[:, jj] / fs) - w[:, jj]
+        elif k == "scale_factor_asymmetry":
+            out[:, jj] += 0.5 * p["eps"] * np.abs(w[:, jj])
+        elif k == "lever_arm":
+            r = np.asarray(p["r"])
+            wm = wt[:, None] * u
+            alpha = np.gradient(wt, t)[:, None] * u
+            a += wm * (wm @ r)[:, None] - np.sum(wm**2, axis=1)[:, None] * r + np.cross(alpha, r)
+        elif k == "table_rate_error":  # 2/rev ripple on the true motion, nominal log
+            rip = p["a2"] * np.sin(2 * tr.table_angle_rad + 0.7)
+            g += (wt * rip)[:, None] * u
+        elif k == "table_wobble":
+            e = np.asarray(p["eps_level"])
+            eb = np.einsum("nji,j->ni", tr.c_b2l, e)
+            g += wt[:, None] * np.cross(eb, u)
+            a += -np.cross(eb, f)
+        elif k == "noise_gm":  # Gauss-Markov bump the IEEE 952 Q/N/B/K model cannot follow
+            rng = np.random.default_rng(self.run_seed + 17)
+            dt = float(np.median(np.diff(t)))
+            phi = np.exp(-dt / p["tau"])
+            from scipy.signal import lfilter
+
+            for c in range(3):
+                e_ = rng.standard_normal(t.size) * p["sigma"] * np.sqrt(1 - phi**2)
+                g[:, c] += lfilter([1.0], [1.0, -phi], e_)
+        elif k == "omega_abs_omega":  # outside the library
+            out[:, jj] += p["k"] * w[:, jj] * np.abs(w[:, jj])
+        elif k == "vibration":  # outside the deterministic library
+            a[:, jj] += p["amp"] * np.sin(2 * np.pi * p["f_hz"] * t)
+        elif k == "bias_step":
+            if self.params.get("run_seed_hit") == self.run_seed:
+                out[:, jj] += p["step"] * (t > p["t_s"])
+        elif k == "latency":
+            d = p["delay_s"]
+            g = np.column_stack([np.interp(t - d, t, g[:, i]) for i in range(3)])
+        return g, a
+
+
+# ----------------------------------------------------------------------------------------------------------
+# cases
+# ----------------------------------------------------------------------------------------------------------
+GYRO_B = {"navigation": 0.003 * DEG / 3600, "tactical": 0.8 * DEG / 3600, "consumer": 10 * DEG / 3600}
+
+
+def cases(tier: str) -> list[dict]:
+    """(device id, grade, kind, params, category, truth family, truth magnitude in the library's unit)."""
+    C = []
+    grades = ("navigation", "tactical", "consumer")
+    n_null = 10 if tier == "quick" else 100
+    for i in range(n_null):
+        C.append(dict(kind="none", grade=grades[i % 3], params={}, category="null", family=None))
+    lib = [  # family, params (tactical), library magnitude, sensor channel, category
+        ("temperature_bias", {"k": 0.002 * DEG, "channel": 2}, 0.002 * DEG),
+        ("temperature_scale_factor", {"k": 40e-6, "channel": 0}, 40e-6),
+        ("warmup_bias", {"a": 0.02 * DEG, "channel": 1}, 0.02 * DEG),
+        ("bias_ramp", {"k": 2e-8, "channel": 2}, 2e-8),
+        ("g_sensitivity", {"k": 0.003 * DEG / 9.80665**2, "channel": 0}, 0.003 * DEG / 9.80665**2),
+        ("scale_factor_nonlinearity", {"fs": 400 * DEG / np.sqrt(3 * 5e-4), "channel": 2}, -5e-4),
+        ("scale_factor_asymmetry", {"eps": 4e-4, "channel": 1}, 4e-4),
+        ("lever_arm", {"r": [0.01, 0.005, 0.0], "channel": 3}, float(np.hypot(0.01, 0.005))),
+        ("table_rate_error", {"a2": 2e-4, "channel": 2}, 2e-4),
+        ("table_wobble", {"eps_level": [1e-4, 0.5e-4, 0.0], "channel": 0}, float(np.hypot(1e-4, 0.5e-4))),
+        ("timebase_error", {"eps": 50e-6, "channel": 0}, 50e-6),
+    ]
+    library_form = {"bias_ramp", "scale_factor_asymmetry", "lever_arm", "table_wobble", "g_sensitivity", "timebase_error"}
+    for i, (fam, p, mag) in enumerate(lib):
+        C.append(dict(kind=fam, grade="tactical", params=p, category="family_clear", family=fam, magnitude=mag,
+                      library_form=fam in library_form))
+    near = lib if tier == "full" else lib[:5]
+    for fam, p, mag in near:
+        scale = 0.15
+        q = {k: (np.asarray(v) * scale).tolist() if k in ("r", "eps_level") else
+             (v * scale if k in ("k", "a", "eps", "a2") else v) for k, v in p.items()}
+        if fam == "scale_factor_nonlinearity":
+            q["fs"] = p["fs"] / np.sqrt(scale)
+        C.append(dict(kind=fam, grade="tactical", params=q, category="family_near", family=fam, magnitude=mag * scale,
+                      library_form=fam in library_form))
+    if tier == "full":
+        for g in ("navigation", "consumer"):
+            for fam, p, mag in lib:
+                C.append(dict(kind=fam, grade=g, params=p, category="family_clear", family=fam, magnitude=mag,
+                              library_form=fam in library_form))
+    for i in range(2 if tier == "quick" else 8):
+        C.append(dict(kind="temperature_bias", grade="tactical", params={"k": 0.002 * DEG, "channel": i % 3},
+                      category="confounded", family="temperature_bias", magnitude=0.002 * DEG, confounded=True))
+    for i in range(3 if tier == "quick" else 10):
+        C.append(dict(kind="noise_gm", grade=("tactical", "navigation", "consumer")[i % 3],
+                      params={"sigma": 8 * GYRO_B[("tactical", "navigation", "consumer")[i % 3]], "tau": 20.0,
+                              "channel": 0}, category="noise_only", family="noise_model"))
+    outside = [("omega_abs_omega", {"k": 3e-5, "channel": 2}), ("vibration", {"amp": 0.02, "f_hz": 7.3, "channel": 4}),
+               ("bias_step", {"step": 0.01 * DEG, "t_s": 500.0, "channel": 1, "run_seed_hit": None})]
+    for kind, p in (outside if tier == "quick" else outside * 3):
+        C.append(dict(kind=kind, grade="tactical", params=p, category="outside", family=None))
+    C.append(dict(kind="latency", grade="tactical", params={"delay_s": 0.005}, category="not_testable", family="latency"))
+    for i, c in enumerate(C):
+        c["device_id"] = f"WH-{i:03d}-{c['category'][:4].upper()}"
+    return C
+
+
+def write_case(root: Path, c: dict, seed: int, static: bool = True, cycles: int = 3) -> dict:
+    landing = root / "landing"
+    truth_dir = root / "truth"
+    base = example_device(c["device_id"], c["grade"], seed)
+    t0 = datetime(2026, 3, 2, 8, 0, tzinfo=timezone.utc)
+    runs = []
+    for cycle in range(cycles):
+        truth = base.for_power_cycle(cycle, seed, cycle * 7.0)
+        start = t0 + timedelta(days=7 * cycle)
+        plan = [("quick_rate", f"pc{cycle:02d}-rate", timedelta(0), {}, True),
+                ("quick_24_position", f"pc{cycle:02d}-pos24", timedelta(minutes=25), {}, True)]
+        if cycle == 0 and static:
+            plan.append(("static_long", f"pc{cycle:02d}-static", timedelta(minutes=45), {"static_duration_s": 900.0},
+                         False))
+        for name, rid, dt, kw, tab in plan:
+            rs = int.from_bytes(hashlib.sha256(f"{c['device_id']}/{rid}".encode()).digest()[:4], "little")
+            params = dict(c["params"])
+            if c["kind"] == "bias_step":
+                params["run_seed_hit"] = int.from_bytes(hashlib.sha256(f"{c['device_id']}/pc01-rate".encode())
+                                                        .digest()[:4], "little")
+            hid = Hidden(c["kind"], params, dt.total_seconds(), rs, bool(c.get("confounded")))
+            effects = (DEFAULT_EFFECTS[0], DEFAULT_EFFECTS[1], hid, DEFAULT_EFFECTS[2]) if c["kind"] != "none" \
+                else DEFAULT_EFFECTS
+            run = simulate_run(truth, name, rid, power_cycle_index=cycle, start_time_utc=start + dt, seed=seed,
+                               effects=effects, table_log=tab, plan_kwargs=kw)
+            # the recorded thermometer: chamber profile (+ sensor noise, 0.01 degC resolution)
+            t = run.imu_raw["time_s"].to_numpy(float)
+            if c["kind"] == "timebase_error":  # the IMU clock runs fast against the table clock
+                run.imu_raw["time_s"] = np.round(t * (1.0 + c["params"]["eps"]), 9)
+            T = chamber_profile(t, rs, bool(c.get("confounded")))
+            run.imu_raw["temperature"] = np.round(T + 0.02 * np.random.default_rng(rs).standard_normal(t.size), 2)
+            write_run(run, landing, "parquet", truth_dir=root / "_simtruth")
+            runs.append(rid)
+    truth = {k: v for k, v in c.items() if k not in ("params",)}
+    truth["params"] = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray)) else v) for k, v in c["params"].items()}
+    truth["runs"] = runs
+    truth["affected_runs"] = _affected(c, runs)
+    truth["sensor"] = _sensor(c)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    (truth_dir / f"{c['device_id']}.json").write_text(json.dumps(truth, indent=1, default=float))
+    return truth
+
+
+def _affected(c, runs):
+    k = c["kind"]
+    if k in ("scale_factor_nonlinearity", "scale_factor_asymmetry", "lever_arm", "table_rate_error", "table_wobble",
+             "omega_abs_omega", "latency"):
+        return [r for r in runs if r.endswith("rate")]
+    if k == "bias_step":
+        return ["pc01-rate"]
+    if k == "g_sensitivity":
+        return [r for r in runs if "pos" in r]
+    return runs
+
+
+def _sensor(c):
+    k = c["kind"]
+    if k in ("lever_arm", "vibration"):
+        return "accel"
+    if k in ("table_wobble",):
+        return None
+    ch = c["params"].get("channel", 0)
+    return "gyro" if ch < 3 else "accel"
+
+
+def generate(root: Path, tier: str, seed: int = 11) -> list[dict]:
+    root.mkdir(parents=True, exist_ok=True)
+    out = []
+    for c in cases(tier):
+        out.append(write_case(root, c, seed))
+    digest = hashlib.sha256()
+    for p in sorted((root / "truth").glob("*.json")):
+        digest.update(p.read_bytes())
+    (root / "truth" / "SEALED.sha256").write_text(digest.hexdigest() + "\n")
+    return out
+
+
+def diagnose_all(root: Path, replicates: int, seed: int, workers: int | None, devices=None) -> None:
+    from assets_lib.simreal.diagnose import diagnose_device
+    from assets_lib.simreal.experiment import list_devices
+    from assets_lib.simreal.report import _clean, write_atomic
+
+    landing = root / "landing"
+    rep_dir = root / "reports"
+    for dev in devices or list_devices(landing):
+        if (rep_dir / f"{dev}.json").exists():
+            continue
+        t0 = time.time()
+        d = diagnose_device(landing, dev, replicates=replicates, seed=seed, workers=workers,
+                            aug_replicates=max(4, replicates // 2))
+        write_atomic(rep_dir / f"{dev}.json", json.dumps(_clean(d.report), indent=1) + "\n")
+        r = d.report
+        print(f"{dev}: {r['verdict']} {[e['family'] + '/' + str(e['channel']) for e in r['effects']]} "
+              f"{time.time() - t0:.0f} s", flush=True)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# scorer: reads the reports and the truth only
+# ----------------------------------------------------------------------------------------------------------
+def _ci(k: int, n: int) -> str:
+    from scipy.stats import beta
+
+    if n == 0:
+        return "n/a"
+    lo = beta.ppf(0.025, k, n - k + 1) if k > 0 else 0.0
+    hi = beta.ppf(0.975, k + 1, n - k) if k < n else 1.0
+    return f"{k}/{n} = {k / n:.2f} [{lo:.2f}, {hi:.2f}]"
+
+
+def score(root: Path) -> dict:
+    truths = {p.stem: json.loads(p.read_text()) for p in (root / "truth").glob("WH-*.json")}
+    reps = {p.stem: json.loads(p.read_text()) for p in (root / "reports").glob("WH-*.json")}
+    res: dict = {"n_reports": len(reps), "n_cases": len(truths)}
+    rows = []
+    for dev, t in sorted(truths.items()):
+        r = reps.get(dev)
+        if r is None:
+            continue
+        fams = [e["family"] for e in r["effects"]]
+        amb = [f for a in r["ambiguity"] for f in a]
+        top = r["where"][0] if r["where"] else None
+        loc = None
+        if top is not None and t["category"] in ("family_clear", "family_near", "confounded"):
+            run_ok = top["run_id"] is None or top["run_id"] in t["affected_runs"]
+            sen_ok = t["sensor"] is None or top["channel"] is None or top["channel"].startswith(t["sensor"])
+            loc = bool(run_ok and sen_ok and r["verdict"] != "no_gap")
+        cov = None
+        if t["category"] == "family_clear" and t.get("library_form") and fams and fams[0] == t["family"]:
+            e = r["effects"][0]
+            m = abs(t["magnitude"])
+            cov = e["ci_lo"] is not None and e["ci_hi"] is not None and \
+                min(abs(e["ci_lo"]), abs(e["ci_hi"])) <= m <= max(abs(e["ci_lo"]), abs(e["ci_hi"])) \
+                if np.sign(e["ci_lo"] or 0) == np.sign(e["ci_hi"] or 0) else (e["ci_lo"] <= m <= e["ci_hi"] or
+                                                                              e["ci_lo"] <= -m <= e["ci_hi"])
+        rows.append(dict(device=dev, category=t["category"], truth=t.get("family") or t["kind"], verdict=r["verdict"],
+                         top1=fams[0] if fams else None, in_amb=(t.get("family") in amb) if t.get("family") else None,
+                         loc=loc, cov=cov, shrink=r["shrink"]["ratio"],
+                         top_view=(top["view"], top["run_id"], top["channel"]) if top else None))
+    by = lambda cat: [x for x in rows if x["category"] == cat]  # noqa: E731
+    null = by("null")
+    res["null_false_positive"] = _ci(sum(x["verdict"] != "no_gap" for x in null), len(null))
+    fam = by("family_clear") + by("family_near")
+    res["top1_clear"] = _ci(sum(x["top1"] == x["truth"] for x in by("family_clear")), len(by("family_clear")))
+    res["top1_near"] = _ci(sum(x["top1"] == x["truth"] for x in by("family_near")), len(by("family_near")))
+    res["detected_near"] = _ci(sum(x["verdict"] != "no_gap" for x in by("family_near")), len(by("family_near")))
+    per = {}
+    for x in fam:
+        per.setdefault(x["truth"], []).append(x["top1"] == x["truth"])
+    res["top1_per_family"] = {k: f"{sum(v)}/{len(v)}" for k, v in sorted(per.items())}
+    conf = by("confounded")
+    res["confounded_truth_in_ambiguity"] = _ci(sum(bool(x["in_amb"]) for x in conf), len(conf))
+    no = by("noise_only")
+    res["noise_only_to_noise_model"] = _ci(sum(x["verdict"] == "noise_model" for x in no), len(no))
+    out = by("outside")
+    res["outside_unexplained_or_partly"] = _ci(sum(x["verdict"] in ("unexplained", "partly_explained") for x in out),
+                                               len(out))
+    locs = [x["loc"] for x in rows if x["loc"] is not None]
+    res["localisation"] = _ci(sum(locs), len(locs))
+    covs = [x["cov"] for x in rows if x["cov"] is not None]
+    res["magnitude_ci_coverage_library_form"] = _ci(sum(covs), len(covs))
+    sh = [x["shrink"] for x in fam if x["top1"] == x["truth"] and x["shrink"] is not None]
+    res["median_shrink_correct"] = float(np.median(sh)) if sh else None
+    res["rows"] = rows
+    return res
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("step", choices=["generate", "diagnose", "score", "all"])
+    ap.add_argument("--tier", choices=["quick", "full"], default="quick")
+    ap.add_argument("--out", "--root", dest="root", default="/tmp/withheld")
+    ap.add_argument("--replicates", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--device", action="append")
+    a = ap.parse_args(argv)
+    root = Path(a.root)
+    t0 = time.time()
+    if a.step in ("generate", "all"):
+        generate(root, a.tier)
+        print(f"generated {len(cases(a.tier))} devices in {time.time() - t0:.0f} s", flush=True)
+    if a.step in ("diagnose", "all"):
+        diagnose_all(root, a.replicates, a.seed, a.workers, a.device)
+    if a.step in ("score", "all"):
+        s = score(root)
+        rows = s.pop("rows")
+        for r in rows:
+            print(r)
+        print(json.dumps(s, indent=1))
+        (root / "score.json").write_text(json.dumps({**s, "rows": rows}, indent=1, default=str))
+    print(f"wall time {time.time() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""Sim-to-real diagnosis (issue 12): report schema, a null device, one device per effect family.
+
+Small replicate counts and reduced archives keep these fast; the statistical targets are measured by
+``benchmarks/withheld_effects.py`` (quick and full tiers), not here.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import withheld_effects as wh  # noqa: E402
+
+from assets_lib.simreal import attribution as at  # noqa: E402
+from assets_lib.simreal.design import build_design, real_rate_windows  # noqa: E402
+from assets_lib.simreal.experiment import load_device  # noqa: E402
+from assets_lib.simreal.twin import fit_twin  # noqa: E402
+from assets_lib.simreal.views import bh_q  # noqa: E402
+
+SCHEMA = json.loads((REPO / "raw_schemas" / "diagnosis_report.schema.json").read_text())
+
+
+def _case(kind: str, grade: str = "tactical") -> dict:
+    for c in wh.cases("quick"):
+        if c["kind"] == kind and c["category"] in ("family_clear", "null", "noise_only", "outside"):
+            return dict(c, grade=grade)
+    raise KeyError(kind)
+
+
+@pytest.fixture(scope="module")
+def null_archive(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("null")
+    c = dict(_case("none"), device_id="NULL-T")
+    wh.write_case(root, c, seed=5, static=True)
+    return root / "landing"
+
+
+def test_bh_q_matches_definition():
+    p = np.array([0.01, 0.04, 0.03, 0.2])
+    q = bh_q(p)
+    # sorted p 0.01, 0.03, 0.04, 0.2 -> 0.04, 0.053, 0.053, 0.2 (monotone step-up)
+    assert np.allclose(q, [0.04, 4 * 0.04 / 3, 4 * 0.04 / 3, 0.2])
+
+
+@pytest.mark.slow
+def test_null_device_report_schema_cli_and_determinism(null_archive, tmp_path):
+    from click.testing import CliRunner
+
+    from imulab.cli import main
+
+    out = tmp_path / "out"
+    r = CliRunner().invoke(main, ["diagnose", "--archive", str(null_archive), "--out", str(out), "--replicates", "4",
+                                  "--seed", "3", "--workers", "2"])
+    assert r.exit_code == 0, r.output
+    rep = json.loads((out / "NULL-T.json").read_text())
+    jsonschema.validate(rep, SCHEMA)
+    assert rep["verdict"] == "no_gap"
+    assert rep["effects"] == [] and rep["gap"]["detected"] is False
+    html = (out / "NULL-T.html").read_text()
+    assert "No significant gap" in html and "data:image/png;base64" in html
+    twin = json.loads((out / "NULL-T.twin.json").read_text())
+    assert twin["device_id"] == "NULL-T" and twin["effects"] == []
+    # deterministic for a seed, whatever the worker count
+    out2 = tmp_path / "out2"
+    r = CliRunner().invoke(main, ["diagnose", "--archive", str(null_archive), "--out", str(out2), "--replicates", "4",
+                                  "--seed", "3", "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    rep2 = json.loads((out2 / "NULL-T.json").read_text())
+    for k in ("verdict", "gap", "where", "effects", "shrink"):
+        assert rep2[k] == rep[k]
+
+
+def test_cli_rejects_unknown_device(null_archive, tmp_path):
+    from click.testing import CliRunner
+
+    from imulab.cli import main
+
+    r = CliRunner().invoke(main, ["diagnose", "--archive", str(null_archive), "--device", "NOPE", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "NOPE" in r.output
+
+
+FAMILY_CASES = ["temperature_bias", "temperature_scale_factor", "warmup_bias",
+                pytest.param("bias_ramp", marks=pytest.mark.xfail(
+                    strict=True, reason="known limitation (docs/simreal.md): a 2e-8 rad/s^2 ramp on a tactical gyro is "
+                                        "below the held-out detection limit once bias instability is whitened "
+                                        "(dLPD ~17 but only 4/6 folds positive in the benchmark)")),
+                "g_sensitivity", "scale_factor_nonlinearity", "scale_factor_asymmetry", "lever_arm", "table_rate_error",
+                "table_wobble", "timebase_error"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", FAMILY_CASES)
+def test_one_device_per_family_is_attributed(family, tmp_path):
+    """The sealed effect (benchmark form, clear magnitude) is the first accepted candidate (or in its ambiguity set)
+    by held-out selection on the real data, with the 2 ln 1000 gate (no replicates: the null calibration only
+    raises gates, measured in the benchmark)."""
+    c = dict(_case(family), device_id=f"F-{family}")
+    wh.write_case(tmp_path, c, seed=7, static=False)
+    exp = load_device(tmp_path / "landing", c["device_id"])
+    twin = fit_twin(exp)
+    win = real_rate_windows(exp.runs, exp.processed, exp.imu, twin.rails)
+    d = build_design(exp.runs, exp.processed, twin, exp.imu, win, np.array([p.k for p in twin.noise]))
+    sel = at.select(d)
+    assert sel.accepted, f"nothing accepted for {family}"
+    first = {at.GROUPS[g][0] for g in sel.ambiguity[0]}
+    assert family in first, (family, [at.GROUPS[s.group][0] for s in sel.accepted], first)
+
+
+@pytest.mark.slow
+def test_null_device_selects_nothing(null_archive):
+    exp = load_device(null_archive, "NULL-T")
+    twin = fit_twin(exp)
+    win = real_rate_windows(exp.runs, exp.processed, exp.imu, twin.rails)
+    d = build_design(exp.runs, exp.processed, twin, exp.imu, win, np.array([p.k for p in twin.noise]))
+    sel = at.select(d)
+    assert sel.accepted == []
+    assert max(s.delta_lpd for s in sel.first_step) < at.GATE
+
+
+@pytest.mark.slow
+def test_sim_to_real_stage_through_the_engine(null_archive, tmp_path):
+    """The ``sim_to_real`` stage computed by the stage engine from stored ``ingested_run`` outputs: report file,
+    tables, verdict in the metadata the asset check reads."""
+    from assets_lib.stages.engine import compute_partition
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive, VersionedStore
+
+    store = VersionedStore(tmp_path / "store")
+    archive = LandingArchive(null_archive)
+    for key in archive.complete_runs():
+        o = compute_partition(STAGES, STAGES["ingested_run"], key, store, archive)
+        assert o.done, o.reason
+    o = compute_partition(STAGES, STAGES["sim_to_real"], "NULL-T", store, archive)
+    assert o.status == "written", o.reason
+    meta = store.read_meta("sim_to_real", "NULL-T")
+    assert meta["verdict"] == "no_gap"
+    d = store.version_dir("sim_to_real", "NULL-T", o.version)
+    rep = json.loads((d / "NULL-T.json").read_text())
+    jsonschema.validate(rep, SCHEMA)
+    assert (d / "NULL-T.html").is_file() and (d / "NULL-T.twin.json").is_file()
+    assert list(store.read("sim_to_real", "NULL-T", "where").columns)[:3] == ["view", "run_id", "channel"]
