@@ -19,6 +19,9 @@ from raw_schemas.manifest import Manifest
 #: --replicates`` for more); fixed seed: the stage is deterministic
 STAGE_REPLICATES = 5
 STAGE_SEED = 0
+#: test kinds the twin can replay (plans with known orientations), and those that give plateau residuals
+TWIN_KINDS = ("rate", "multiposition", "tumble", "static")
+CALIBRATION_KINDS = ("rate", "multiposition", "tumble")
 #: verdicts the asset check warns about
 WARN_VERDICTS = ("unexplained", "partly_explained", "noise_model")
 
@@ -29,11 +32,13 @@ def sim_to_real(device: str, inputs) -> StageOutput | None:
     frames = []
     for k in inputs.keys_of("ingested_run"):
         m = Manifest.model_validate_json(inputs.file("ingested_run", "manifest.json", key=k))
+        if m.test_kind not in TWIN_KINDS:
+            continue  # hand-placed poses have no known orientations: the twin cannot replay them
         imu = inputs.table("ingested_run", "imu", key=k)
         table = inputs.table("ingested_run", "table", key=k) if inputs.has_table("ingested_run", "table", key=k) else None
         frames.append((m, imu, table))
-    if not frames:
-        return None
+    if not any(m.test_kind in CALIBRATION_KINDS for m, _, _ in frames):
+        return None  # not applicable: no table-driven calibration run to compare the twin with
     exp = experiment_from_frames(frames)
     diag = diagnose_device(None, device, replicates=STAGE_REPLICATES, seed=STAGE_SEED, workers=1, experiment=exp)
     rep = _clean(diag.report)
