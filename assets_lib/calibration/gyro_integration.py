@@ -11,7 +11,9 @@ carried to pose i+1, R_i^T u_i, must equal the direction measured there, u_{i+1}
 A rotation about the gravity direction of a pose pair leaves no trace in this residual; the terms are
 separated only by pose pairs whose rotation axes differ. Uncertainty: Gauss-Newton covariance
 s^2 (J^T J)^-1 with s^2 = RSS / (2 n_pairs - n_params) (two independent components per unit-vector
-residual). Earth rate (up to 7.3e-5 rad/s, ~0.004 deg over a 1 s move) is not modelled, as in imu_tk.
+residual); the 95 % interval is value -/+ t_{0.975, dof} SE (Student-t, [GUM] G.3: s^2 is estimated from the
+residuals), stored in ``ci_low``/``ci_high`` and as ``k95``. Not propagated: the error of the fixed bias and of
+the accelerometer-derived directions (both small against the integrated gyro noise in the simulated sessions). Earth rate (up to 7.3e-5 rad/s, ~0.004 deg over a 1 s move) is not modelled, as in imu_tk.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 from scipy.optimize import least_squares
 
 from assets_lib.calibration.tablefree import observability
@@ -40,6 +43,8 @@ class GyroIntegrationFit:
     covariance: np.ndarray
     unobservable: tuple
     bias_fitted: bool
+    dof: int = 0                    # residual degrees of freedom 2 n_pairs - n_params of s^2
+    k95: float = float(stats.norm.ppf(0.975))  # Student-t coverage factor of the 95 % intervals
 
     def apply(self, raw: np.ndarray) -> np.ndarray:
         return ((self.T * self.scale[None, :]) @ (np.asarray(raw, float) - self.bias).T).T
@@ -134,14 +139,15 @@ def fit_gyro_integration(t_s: np.ndarray, gyro_raw: np.ndarray, starts, ends, gr
     n_pairs = r.shape[0]
     dof = 2 * n_pairs - p.size
     s2 = float(np.sum(r * r) / dof) if dof > 0 else np.nan
+    k95 = float(stats.t.ppf(0.975, dof)) if dof > 0 else np.nan
     cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     typical = np.r_[np.ones(6), np.abs(p[6:9]), (1.0 / np.abs(p[6:9])) if fit_bias else []]  # bias: 1 rad/s
     unobs = observability(sol.jac, names, typical)
     units = ("1",) * 6 + (f"rad/s per {input_unit}",) * 3 + (input_unit,) * 3
-    coefs = {n: (Coefficient.unobservable(units[i]) if n in unobs or dof <= 0 else Coefficient(float(p[i]), float(se[i]), units[i]))
+    coefs = {n: (Coefficient.unobservable(units[i]) if n in unobs or dof <= 0 else Coefficient.with_coverage(float(p[i]), float(se[i]), units[i], True, k95))
              for i, n in enumerate(names)}
     b = p[9:12] if fit_bias else b_fixed
     ang = 2 * np.arcsin(np.clip(np.linalg.norm(r, axis=1) / 2, 0, 1))
     return GyroIntegrationFit(_T(p), p[6:9].copy(), np.asarray(b, float), coefs, r, float(np.sqrt(np.mean(ang ** 2))),
-                              n_pairs, cov, unobs, fit_bias)
+                              n_pairs, cov, unobs, fit_bias, max(dof, 0), k95)

@@ -105,7 +105,8 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
         if poses.count < MIN_POSES:
             continue
         m = pose_means(t, acc, poses.starts, poses.ends, POSE_SAMPLES)
-        af = fit_accel_poses(m, gravity_mps2, input_unit="m/s^2 (nominal)")
+        n_avg = np.minimum(np.asarray(poses.ends) - np.asarray(poses.starts), POSE_SAMPLES)
+        af = fit_accel_poses(m, gravity_mps2, input_unit="m/s^2 (nominal)", n_samples=n_avg)
         if best is None or af.rms_mps2 < best[2].rms_mps2:
             best = (k, poses, af, m)
     if best is None:
@@ -140,9 +141,15 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
     from assets_lib.calibration.fit_report import coefficient_row as _row
     from raw_schemas.units import lab_unit
 
-    def coefficient_row(*, sensor, coefficient, value, stderr, observable, **kw):
-        est = Coefficient(float(value), float(stderr), lab_unit(sensor, coefficient).si, bool(observable))
+    def coefficient_row(*, sensor, coefficient, value, stderr, observable, ci=None, **kw):
+        # ci: the fit's own 95 % interval (Tedaldi fits: Student-t at the residual dof), kept in ci95_low/high
+        lo, hi = ci.interval() if ci is not None and ci.observable else (np.nan, np.nan)
+        est = Coefficient(float(value), float(stderr), lab_unit(sensor, coefficient).si, bool(observable), lo, hi)
         return _row(sensor=sensor, coefficient=coefficient, estimate=est, **kw)
+
+    def _dof(sensor):
+        f = result.accel_fit if sensor == "accel" else result.gyro_fit
+        return getattr(f, "dof", np.nan)
 
     rows = []
     n_p = result.poses.count if result.poses is not None else 6
@@ -153,10 +160,13 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
             for i, a in enumerate(AXES):
                 k = c[f"{sensor}_k_{a}"]
                 rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="scale_factor", value=k.value,
-                                            stderr=k.stderr, observable=k.observable, method="tedaldi", **common))
+                                            stderr=k.stderr, observable=k.observable, method="tedaldi", ci=k,
+                                            dof=_dof(sensor), **common))
                 b = c[f"{sensor}_b_{a}"]
                 rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="bias", value=b.value, stderr=b.stderr,
                                             observable=b.observable and np.isfinite(b.stderr), method="tedaldi",
+                                            ci=b if sensor == "accel" else None,
+                                            dof=_dof(sensor) if sensor == "accel" else np.nan,
                                             note="initial static interval mean" if sensor == "gyro" else "", **common))
                 for j, aj in enumerate(AXES):
                     name = _T_NAMES.get((i, j))
@@ -165,7 +175,7 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
                         m = c[key]
                         rows.append(coefficient_row(sensor=sensor, axis=a, coefficient=f"misalignment_{a}{aj}",
                                                     value=m.value, stderr=m.stderr, observable=m.observable,
-                                                    method="tedaldi", **common))
+                                                    method="tedaldi", ci=m, dof=_dof(sensor), **common))
     else:
         f = result.accel_fit
         d2r = np.pi / 180.0
