@@ -45,7 +45,8 @@ def trial(seed: int) -> list[tuple[str, float, float, float, bool]]:
     p = detect_static_poses(s.t_s, s.accel, k=6, reference=ref)
     m = pose_means(s.t_s, s.accel, p.starts, p.ends)
     af = fit_accel_poses(m, 9.81, n_samples=np.asarray(p.ends) - np.asarray(p.starts))
-    gf = fit_gyro_integration(s.t_s, s.gyro, p.starts, p.ends, af.apply(m), s.gyro[ref].mean(0), scale_start=np.ones(3))
+    gf = fit_gyro_integration(s.t_s, s.gyro, p.starts, p.ends, af.apply(m), s.gyro[ref].mean(0), scale_start=np.ones(3),
+                              bias_cov=np.cov(s.gyro[ref].T) / s.gyro[ref].shape[0])
     T, G = tr["accel_T"], tr["gyro_T"]
     ta = {"t01": T[0, 1], "t02": T[0, 2], "t12": T[1, 2], **{f"k_{a}": tr["accel_k"][i] for i, a in enumerate("xyz")},
           **{f"b_{a}": tr["accel_b"][i] for i, a in enumerate("xyz")}}

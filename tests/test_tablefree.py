@@ -170,6 +170,12 @@ def test_tablefree_intervals_use_student_t_at_residual_dof():
         for c in fit.coefficients.values():
             lo, hi = c.interval()
             assert (lo, hi) == pytest.approx((c.value - k * c.stderr, c.value + k * c.stderr), rel=1e-12)
+    # the fixed bias's uncertainty widens the gyro standard errors (first-order propagation), never narrows them
+    gb = fit_gyro_integration(s.t_s, s.gyro, p.starts, p.ends, af.apply(m), s.gyro[ref].mean(0), scale_start=np.ones(3),
+                              bias_cov=np.eye(3) * 1e-8)
+    se0 = np.array([c.stderr for c in gf.coefficients.values()])
+    se1 = np.array([c.stderr for c in gb.coefficients.values()])
+    assert np.all(se1 >= se0) and np.any(se1 > 1.01 * se0)
     with pytest.raises(ValueError, match="n_samples"):
         fit_accel_poses(m, 9.81, n_samples=np.ones(len(m) - 1))
 

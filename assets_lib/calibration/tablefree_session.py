@@ -116,10 +116,11 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
     bias = gyr[ref].mean(axis=0) if ref is not None else pose_means(t, gyr, poses.starts, poses.ends).mean(axis=0)
     warnings = () if ref is not None else ("no initial static interval declared: gyro bias = mean over all poses "
                                            "(earth rate projected on the mean attitude enters it)",)
-    gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
-                              input_unit="rad/s (nominal)")
     n_ref = (ref.stop - ref.start) if ref is not None else 0
     bias_se = _mean_stderr(gyr[ref], manifest.sample_rate_hz) if ref is not None and n_ref >= 64 else np.full(3, np.nan)
+    gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
+                              input_unit="rad/s (nominal)",
+                              bias_cov=np.diag(bias_se ** 2) if np.all(np.isfinite(bias_se)) else None)
     coefs = {f"accel_{n}": c for n, c in af.coefficients.items()}
     coefs.update({f"gyro_{n}": c for n, c in gf.coefficients.items()})
     for i, ax in enumerate("xyz"):
