@@ -152,6 +152,34 @@ def test_simulated_hand_session_recovers_truth_within_uncertainty():
     assert 0.5 < np.std(zs) < 1.6  # standard errors of the right size (not 10x too wide or too narrow)
 
 
+def test_tablefree_intervals_use_student_t_at_residual_dof():
+    """s^2 is estimated from n_poses - 9 (accel) and 2 n_pairs - 9 (gyro) residual dof, so the printed 95 %
+    interval is value -/+ t_{0.975, dof} SE ([GUM] G.3), wider than 1.96 SE (coverage ~93.6 % at 21 dof)."""
+    from scipy import stats
+
+    s = simulate_hand_session(np.random.default_rng(11))
+    ref = slice(0, int(s.initial_static_s * 100))
+    p = detect_static_poses(s.t_s, s.accel, k=6, reference=ref)
+    m = pose_means(s.t_s, s.accel, p.starts, p.ends)
+    af = fit_accel_poses(m, 9.81, n_samples=np.asarray(p.ends) - np.asarray(p.starts))
+    gf = fit_gyro_integration(s.t_s, s.gyro, p.starts, p.ends, af.apply(m), s.gyro[ref].mean(0), scale_start=np.ones(3))
+    assert af.dof == p.count - 9 and gf.dof == 2 * (p.count - 1) - 9
+    for fit in (af, gf):
+        k = stats.t.ppf(0.975, fit.dof)
+        assert k > 2.0 and fit.k95 == pytest.approx(k)
+        for c in fit.coefficients.values():
+            lo, hi = c.interval()
+            assert (lo, hi) == pytest.approx((c.value - k * c.stderr, c.value + k * c.stderr), rel=1e-12)
+    # the fixed bias's uncertainty widens the gyro standard errors (first-order propagation), never narrows them
+    gb = fit_gyro_integration(s.t_s, s.gyro, p.starts, p.ends, af.apply(m), s.gyro[ref].mean(0), scale_start=np.ones(3),
+                              bias_cov=np.eye(3) * 1e-8)
+    se0 = np.array([c.stderr for c in gf.coefficients.values()])
+    se1 = np.array([c.stderr for c in gb.coefficients.values()])
+    assert np.all(se1 >= se0) and np.any(se1 > 1.01 * se0)
+    with pytest.raises(ValueError, match="n_samples"):
+        fit_accel_poses(m, 9.81, n_samples=np.ones(len(m) - 1))
+
+
 def test_single_axis_pose_set_reports_unobservable_terms():
     """Gravity always in the body x-y plane (poses rotated about body z only): the z scale and bias cannot be
     told apart from the pose magnitudes; they are reported unobservable, not fitted to noise."""
@@ -211,6 +239,12 @@ def test_coefficient_table_rows(xsens_run):
     assert list(t.columns[: len(COEFFICIENT_COLUMNS)]) == COEFFICIENT_COLUMNS
     # accel: 3 scales, 3 biases, 3 misalignments (upper triangle); gyro: 3 + 3 + 6
     assert len(t) == 9 + 12 and t["observable"].all()
+    # printed interval = the fit's Student-t interval, wider than the normal one
+    ta = t[(t.method == "tedaldi") & (t.coefficient != "bias") | (t.sensor == "accel")]
+    half = (ta["ci95_high"] - ta["ci95_low"]) / 2
+    np.testing.assert_allclose(half / ta["stderr"], np.where(ta.sensor == "accel", res.accel_fit.k95, res.gyro_fit.k95),
+                               rtol=1e-9)
+    assert (ta["dof"] > 0).all() and res.accel_fit.k95 > 1.96
     k = t[(t.sensor == "gyro") & (t.coefficient == "scale_factor")].set_index("axis")["value"]
     np.testing.assert_allclose(k.to_numpy() * GYRO_LSB, IMUTK_GYRO_K, rtol=2e-3)
 

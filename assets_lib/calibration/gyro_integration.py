@@ -11,7 +11,10 @@ carried to pose i+1, R_i^T u_i, must equal the direction measured there, u_{i+1}
 A rotation about the gravity direction of a pose pair leaves no trace in this residual; the terms are
 separated only by pose pairs whose rotation axes differ. Uncertainty: Gauss-Newton covariance
 s^2 (J^T J)^-1 with s^2 = RSS / (2 n_pairs - n_params) (two independent components per unit-vector
-residual). Earth rate (up to 7.3e-5 rad/s, ~0.004 deg over a 1 s move) is not modelled, as in imu_tk.
+residual); the 95 % interval is value -/+ t_{0.975, dof} SE (Student-t, [GUM] G.3: s^2 is estimated from the
+residuals), stored in ``ci_low``/``ci_high`` and as ``k95``. The standard error of a fixed bias is propagated
+when ``bias_cov`` is given; the errors of the accelerometer-derived directions are not (small against the
+integrated gyro noise in the simulated sessions; the cross-axis terms cover ~93-95 % instead of 95 %). Earth rate (up to 7.3e-5 rad/s, ~0.004 deg over a 1 s move) is not modelled, as in imu_tk.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 from scipy.optimize import least_squares
 
 from assets_lib.calibration.tablefree import observability
@@ -40,6 +44,8 @@ class GyroIntegrationFit:
     covariance: np.ndarray
     unobservable: tuple
     bias_fitted: bool
+    dof: int = 0                    # residual degrees of freedom 2 n_pairs - n_params of s^2
+    k95: float = float(stats.norm.ppf(0.975))  # Student-t coverage factor of the 95 % intervals
 
     def apply(self, raw: np.ndarray) -> np.ndarray:
         return ((self.T * self.scale[None, :]) @ (np.asarray(raw, float) - self.bias).T).T
@@ -104,10 +110,12 @@ class _Segments:
 
 
 def fit_gyro_integration(t_s: np.ndarray, gyro_raw: np.ndarray, starts, ends, gravity_dirs: np.ndarray, bias: np.ndarray,
-                         *, scale_start: np.ndarray, fit_bias: bool = False, input_unit: str = "counts") -> GyroIntegrationFit:
+                         *, scale_start: np.ndarray, fit_bias: bool = False, input_unit: str = "counts",
+                         bias_cov: np.ndarray | None = None) -> GyroIntegrationFit:
     """[TEDALDI2014] eq. 14-17 (module docstring). ``gravity_dirs``: unit specific-force directions of the
     poses from the calibrated accelerometer; ``bias``: initial (or fixed) gyro bias; ``scale_start``: initial
-    diagonal scale (rad/s per input unit)."""
+    diagonal scale (rad/s per input unit); ``bias_cov``: 3x3 covariance of a fixed ``bias``, propagated into
+    the covariance of T and K to first order ([GUM] 5.2: dp = -(J^T J)^-1 J^T J_b db)."""
     u = np.asarray(gyro_raw, float)
     starts = np.asarray(starts)
     ends = np.asarray(ends)
@@ -134,14 +142,29 @@ def fit_gyro_integration(t_s: np.ndarray, gyro_raw: np.ndarray, starts, ends, gr
     n_pairs = r.shape[0]
     dof = 2 * n_pairs - p.size
     s2 = float(np.sum(r * r) / dof) if dof > 0 else np.nan
-    cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
+    k95 = float(stats.t.ppf(0.975, dof)) if dof > 0 else np.nan
+    jtj_inv = np.linalg.pinv(sol.jac.T @ sol.jac)
+    cov = s2 * jtj_inv
+    if bias_cov is not None and not fit_bias:
+        bc = np.asarray(bias_cov, float)
+        if bc.shape != (3, 3) or not np.all(np.isfinite(bc)):
+            raise ValueError(f"bias_cov: expected a finite 3x3 covariance of the fixed bias, got shape {bc.shape}")
+        h = 1e-6 * max(float(np.max(np.abs(u))), 1.0) * 1e-3
+
+        def resid_b(b):
+            w = ((_T(p) * p[6:9][None, :]) @ (u - b).T).T
+            return (np.einsum("kji,kj->ki", seg.rotations(w), g[:-1]) - g[1:]).ravel()
+
+        jb = np.column_stack([(resid_b(b_fixed + h * e) - resid_b(b_fixed - h * e)) / (2 * h) for e in np.eye(3)])
+        a_b = -jtj_inv @ sol.jac.T @ jb
+        cov = cov + a_b @ bc @ a_b.T
     se = np.sqrt(np.clip(np.diag(cov), 0, None))
     typical = np.r_[np.ones(6), np.abs(p[6:9]), (1.0 / np.abs(p[6:9])) if fit_bias else []]  # bias: 1 rad/s
     unobs = observability(sol.jac, names, typical)
     units = ("1",) * 6 + (f"rad/s per {input_unit}",) * 3 + (input_unit,) * 3
-    coefs = {n: (Coefficient.unobservable(units[i]) if n in unobs or dof <= 0 else Coefficient(float(p[i]), float(se[i]), units[i]))
+    coefs = {n: (Coefficient.unobservable(units[i]) if n in unobs or dof <= 0 else Coefficient.with_coverage(float(p[i]), float(se[i]), units[i], True, k95))
              for i, n in enumerate(names)}
     b = p[9:12] if fit_bias else b_fixed
     ang = 2 * np.arcsin(np.clip(np.linalg.norm(r, axis=1) / 2, 0, 1))
     return GyroIntegrationFit(_T(p), p[6:9].copy(), np.asarray(b, float), coefs, r, float(np.sqrt(np.mean(ang ** 2))),
-                              n_pairs, cov, unobs, fit_bias)
+                              n_pairs, cov, unobs, fit_bias, max(dof, 0), k95)

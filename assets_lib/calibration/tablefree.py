@@ -8,8 +8,12 @@ the 9 parameters minimise sum_i (|T K (m_i - b)| - g)^2 over the pose means m_i 
 quantity the acceptance check evaluates; imu_tk minimises the squared-norm difference g^2 - |a|^2, whose optimum
 differs at second order). Start: a linear axis-aligned ellipsoid fit, so no nominal bias or scale is needed.
 
-Uncertainty: the Gauss-Newton covariance s^2 (J^T J)^-1 at the optimum, s^2 = RSS / (n_poses - 9) (the scatter
-of the pose magnitudes, including model discrepancy, sets the scale). Observability: a parameter is reported
+Uncertainty: the Gauss-Newton covariance s^2 (J^T W J)^-1 at the optimum, s^2 = RSS_W / (n_poses - 9) (the scatter
+of the pose magnitudes, including model discrepancy, sets the scale). W = diag(N_i / mean N) when the samples
+averaged per pose are given (a pose mean of N_i white-noise samples has variance sigma^2 / N_i), else W = I.
+Because s^2 is estimated from only n_poses - 9 residual degrees of freedom (21 for 30 poses), the 95 % interval
+is value -/+ t_{0.975, n_poses - 9} SE (Student-t, [GUM] G.3; 2.08 for 21 dof), stored in ``ci_low``/``ci_high``
+and as ``k95``; the normal 1.96 would cover only ~93.6 % at 21 dof. Observability: a parameter is reported
 unobservable when the Jacobian has a singular value below ``rcond`` x the largest along its direction (e.g.
 every pose with one axis horizontal); at least 9 poses with distinct attitudes are needed, 12+ recommended.
 """
@@ -19,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 from scipy.optimize import least_squares
 
 from assets_lib.coefficient import Coefficient
@@ -40,6 +45,8 @@ class AccelPoseFit:
     n_poses: int
     covariance: np.ndarray
     unobservable: tuple
+    dof: int = 0                   # residual degrees of freedom n_poses - 9 of the variance factor s^2
+    k95: float = float(stats.norm.ppf(0.975))  # Student-t coverage factor of the 95 % intervals
 
     def apply(self, raw: np.ndarray) -> np.ndarray:
         """Calibrated specific force T K (u - b) for raw rows u."""
@@ -89,23 +96,34 @@ def observability(jac: np.ndarray, names, typical: np.ndarray, rcond: float = 1e
 
 
 def fit_accel_poses(pose_means: np.ndarray, gravity_mps2: float, *, input_unit: str = "m/s^2",
-                    start: np.ndarray | None = None) -> AccelPoseFit:
-    """[TEDALDI2014] eq. 10 (module docstring): 9-parameter accelerometer fit from static pose means."""
+                    start: np.ndarray | None = None, n_samples: np.ndarray | None = None) -> AccelPoseFit:
+    """[TEDALDI2014] eq. 10 (module docstring): 9-parameter accelerometer fit from static pose means.
+    ``n_samples``: samples averaged into each pose mean (weights of the least squares), None for equal weights."""
     m = np.asarray(pose_means, float)
     n = m.shape[0]
     g = float(gravity_mps2)
     p0 = ellipsoid_start(m, g) if start is None else np.asarray(start, float)
+    if n_samples is None:
+        sw = np.ones(n)
+    else:
+        w = np.asarray(n_samples, float)
+        if w.shape != (n,) or np.any(~np.isfinite(w)) or np.any(w <= 0):
+            raise ValueError(f"n_samples: expected {n} positive counts (one per pose mean), got {w!r}")
+        sw = np.sqrt(w / w.mean())
 
     def resid(p):
         return np.linalg.norm(apply_accel_params(p, m), axis=1) - g
 
-    sol = least_squares(resid, p0, x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=2000)
+    sol = least_squares(lambda p: sw * resid(p), p0, x_scale="jac", xtol=1e-15, ftol=1e-15, gtol=1e-15,
+                        max_nfev=2000)
     p = sol.x
     r = resid(p)
+    rw = sw * r
     dof = n - p.size
     typical = np.r_[np.ones(3), np.abs(p[3:6]), g / np.abs(p[3:6])]
     unobs = observability(sol.jac, PARAM_NAMES, typical) if n >= p.size else PARAM_NAMES
-    s2 = float(r @ r / dof) if dof > 0 else np.nan
+    s2 = float(rw @ rw / dof) if dof > 0 else np.nan
+    k95 = float(stats.t.ppf(0.975, dof)) if dof > 0 else np.nan
     try:
         cov = s2 * np.linalg.pinv(sol.jac.T @ sol.jac)
     except np.linalg.LinAlgError:
@@ -115,9 +133,9 @@ def fit_accel_poses(pose_means: np.ndarray, gravity_mps2: float, *, input_unit: 
     coefs = {}
     for i, name in enumerate(PARAM_NAMES):
         coefs[name] = (Coefficient.unobservable(units[i]) if name in unobs or dof <= 0
-                       else Coefficient(float(p[i]), float(se[i]), units[i]))
+                       else Coefficient.with_coverage(float(p[i]), float(se[i]), units[i], True, k95))
     T, k, b = _unpack(p)
-    return AccelPoseFit(T, k, b, coefs, r, float(np.sqrt(np.mean(r * r))), g, n, cov, unobs)
+    return AccelPoseFit(T, k, b, coefs, r, float(np.sqrt(np.mean(r * r))), g, n, cov, unobs, max(dof, 0), k95)
 
 
 def static_norm_rms(T: np.ndarray, scale: np.ndarray, bias: np.ndarray, pose_means: np.ndarray, gravity_mps2: float) -> float:

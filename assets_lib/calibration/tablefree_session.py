@@ -105,7 +105,8 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
         if poses.count < MIN_POSES:
             continue
         m = pose_means(t, acc, poses.starts, poses.ends, POSE_SAMPLES)
-        af = fit_accel_poses(m, gravity_mps2, input_unit="m/s^2 (nominal)")
+        n_avg = np.minimum(np.asarray(poses.ends) - np.asarray(poses.starts), POSE_SAMPLES)
+        af = fit_accel_poses(m, gravity_mps2, input_unit="m/s^2 (nominal)", n_samples=n_avg)
         if best is None or af.rms_mps2 < best[2].rms_mps2:
             best = (k, poses, af, m)
     if best is None:
@@ -115,10 +116,11 @@ def calibrate_tablefree(manifest, imu: pd.DataFrame, gravity_mps2: float) -> Tab
     bias = gyr[ref].mean(axis=0) if ref is not None else pose_means(t, gyr, poses.starts, poses.ends).mean(axis=0)
     warnings = () if ref is not None else ("no initial static interval declared: gyro bias = mean over all poses "
                                            "(earth rate projected on the mean attitude enters it)",)
-    gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
-                              input_unit="rad/s (nominal)")
     n_ref = (ref.stop - ref.start) if ref is not None else 0
     bias_se = _mean_stderr(gyr[ref], manifest.sample_rate_hz) if ref is not None and n_ref >= 64 else np.full(3, np.nan)
+    gf = fit_gyro_integration(t, gyr, poses.starts, poses.ends, af.apply(m), bias, scale_start=np.ones(3),
+                              input_unit="rad/s (nominal)",
+                              bias_cov=np.diag(bias_se ** 2) if np.all(np.isfinite(bias_se)) else None)
     coefs = {f"accel_{n}": c for n, c in af.coefficients.items()}
     coefs.update({f"gyro_{n}": c for n, c in gf.coefficients.items()})
     for i, ax in enumerate("xyz"):
@@ -140,9 +142,15 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
     from assets_lib.calibration.fit_report import coefficient_row as _row
     from raw_schemas.units import lab_unit
 
-    def coefficient_row(*, sensor, coefficient, value, stderr, observable, **kw):
-        est = Coefficient(float(value), float(stderr), lab_unit(sensor, coefficient).si, bool(observable))
+    def coefficient_row(*, sensor, coefficient, value, stderr, observable, ci=None, **kw):
+        # ci: the fit's own 95 % interval (Tedaldi fits: Student-t at the residual dof), kept in ci95_low/high
+        lo, hi = ci.interval() if ci is not None and ci.observable else (np.nan, np.nan)
+        est = Coefficient(float(value), float(stderr), lab_unit(sensor, coefficient).si, bool(observable), lo, hi)
         return _row(sensor=sensor, coefficient=coefficient, estimate=est, **kw)
+
+    def _dof(sensor):
+        f = result.accel_fit if sensor == "accel" else result.gyro_fit
+        return getattr(f, "dof", np.nan)
 
     rows = []
     n_p = result.poses.count if result.poses is not None else 6
@@ -153,10 +161,13 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
             for i, a in enumerate(AXES):
                 k = c[f"{sensor}_k_{a}"]
                 rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="scale_factor", value=k.value,
-                                            stderr=k.stderr, observable=k.observable, method="tedaldi", **common))
+                                            stderr=k.stderr, observable=k.observable, method="tedaldi", ci=k,
+                                            dof=_dof(sensor), **common))
                 b = c[f"{sensor}_b_{a}"]
                 rows.append(coefficient_row(sensor=sensor, axis=a, coefficient="bias", value=b.value, stderr=b.stderr,
                                             observable=b.observable and np.isfinite(b.stderr), method="tedaldi",
+                                            ci=b if sensor == "accel" else None,
+                                            dof=_dof(sensor) if sensor == "accel" else np.nan,
                                             note="initial static interval mean" if sensor == "gyro" else "", **common))
                 for j, aj in enumerate(AXES):
                     name = _T_NAMES.get((i, j))
@@ -165,7 +176,7 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
                         m = c[key]
                         rows.append(coefficient_row(sensor=sensor, axis=a, coefficient=f"misalignment_{a}{aj}",
                                                     value=m.value, stderr=m.stderr, observable=m.observable,
-                                                    method="tedaldi", **common))
+                                                    method="tedaldi", ci=m, dof=_dof(sensor), **common))
     else:
         f = result.accel_fit
         d2r = np.pi / 180.0
