@@ -47,6 +47,7 @@ class LaunchSummary:
     runs: list[tuple[str, str, bool]] = field(default_factory=list)  # (job, run id, success)
     succeeded_steps: set[str] = field(default_factory=set)  # step keys (= stage names) that succeeded in some run
     attempted: set[tuple[str, str]] = field(default_factory=set)  # (stage, partition) whose step succeeded
+    warnings: list[str] = field(default_factory=list)  # failed non-blocking checks: "<asset> <check>: <what>"
 
     @property
     def success(self) -> bool:
@@ -64,9 +65,26 @@ def run_job(defs: dg.Definitions, instance: dg.DagsterInstance, job_name: str, t
     summary.runs.append((job_name, res.run_id, res.success))
     steps = {e.step_key for e in res.all_events if e.is_step_success and e.step_key}
     summary.succeeded_steps |= steps
+    summary.warnings += failed_checks(res)
     keys = _covered_keys(instance, job_name, tags or {})
     summary.attempted |= {(step, k) for step in steps for k in keys}
     return summary
+
+
+def failed_checks(res) -> list[str]:
+    """One line per failed asset-check evaluation of a run: asset, check and the failures it lists."""
+    out = []
+    for e in res.all_events:
+        if e.event_type_value != "ASSET_CHECK_EVALUATION":
+            continue
+        ev = e.event_specific_data
+        if ev.passed:
+            continue
+        md = ev.metadata or {}
+        what = md.get("failures") or md.get("problems") or md.get("flagged")
+        what = getattr(what, "value", what) or ev.description or ""
+        out.append(f"{ev.asset_key.to_user_string()} {ev.check_name}: {str(what).replace(chr(10), '; ')}"[:300])
+    return out
 
 
 def _covered_keys(instance: dg.DagsterInstance, job_name: str, tags: dict) -> list[str]:

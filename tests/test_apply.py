@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from click.testing import CliRunner
+from scipy import stats
 
 from assets_lib.apply import (
     assemble,
@@ -74,25 +75,108 @@ def _z(cal, p, sensor):
     return ((got - ref) / np.sqrt(sem**2 + unc**2)).ravel()
 
 
-def test_record_applied_to_other_runs_of_the_device_gives_unit_z_scores(device):
-    """Runs B (same device and power cycle, other noise): rate plateaus for the gyro, 24 positions for the accel
-    (static: the accel model is nonlinear, so only static plateau means invert exactly), 3 seeds."""
-    cal = device["cal"]
-    nominal = Calibration(cal.device_id, Triad.nominal(), Triad.nominal(), (), (), (), (), (), None, None, None)
+# Independent calibrations of the same device (same truth and power cycle, independent noise), each applied to its
+# own follow-up runs. Half-length dwells keep the test short; the z-scores are normalised by the stated uncertainty,
+# so shorter plateaus widen the uncertainties, not the z-scores.
+N_CAL = 24
+SHORT = {"plan_kwargs": {"duration_scale": 0.5}}
+FALSE_ALARM = 1e-3  # per criterion, two-sided
+
+
+def _independent_calibration_z(n_cal: int, edit=lambda rec: rec) -> dict[str, list[np.ndarray]]:
+    """z-scores per sensor, one array per independent calibration k: the rate and 24-position records of runs
+    A_k (seeds 100+k, 200+k) assembled and applied to the rate plateaus (gyro) and the 24 static positions (accel;
+    the accel model is nonlinear, so only static plateau means invert exactly) of runs B_k (seeds 300+k, 400+k).
+    ``edit`` maps each record before assembly (to check that a wrong record fails)."""
+    truth = example_device("TAC-Z01", "tactical", 5).for_power_cycle(0, 5)
     zs = {"gyro": [], "accel": []}
-    z_nominal = []
-    for seed in (11, 12, 13):
-        for plan, sensor in (("quick_rate", "gyro"), ("quick_24_position", "accel")):
-            p = plateaus_of(simulate_run(device["truth"], plan, f"b-{seed}", seed=seed))
+    for k in range(n_cal):
+        rate, _, _ = fitted_record(truth, "quick_rate", f"a{k}-rate", 100 + k, T0, **SHORT)
+        pos, _, _ = fitted_record(truth, "quick_24_position", f"a{k}-pos24", 200 + k, T0 + timedelta(hours=1), **SHORT)
+        cal = assemble([edit(rate), edit(pos)], T0 + timedelta(days=1))
+        for plan, sensor, seed in (("quick_rate", "gyro", 300 + k), ("quick_24_position", "accel", 400 + k)):
+            p = plateaus_of(simulate_run(truth, plan, f"b{k}-{sensor}", seed=seed, **SHORT))
             zs[sensor].append(_z(cal, p, sensor))
-            z_nominal.append(_z(nominal, p, sensor))
-    for sensor, parts in zs.items():
-        z = np.concatenate(parts)
-        assert len(z) > 200
-        assert 0.8 < z.std() < 1.25, (sensor, z.std())
-        assert abs(z.mean()) < 0.35, (sensor, z.mean())
+    return zs
+
+
+def _unit_z_verdict(parts: list[np.ndarray]) -> dict:
+    """Is a set of z-scores from K independent calibrations consistent with zero mean and unit variance?
+
+    The z's of one calibration share that calibration's coefficient errors (and their follow-up run's bias wander),
+    so they are correlated: the mean of the n z's of one calibration has a variance between 1/n (independent) and 1
+    (fully correlated), never ~1/n as the old single-calibration bound assumed. Across calibrations the z's ARE
+    independent (independent seeds, fixed truth). So the test statistics are per calibration k = 1..K (i.i.d.):
+      m_k = mean of its z's,  m_ka = mean of its z's on axis a,  v_k = mean of its z's squared.
+    Under the model E[m_k] = E[m_ka] = 0 and E[v_k] = 1 exactly, whatever the correlation inside a calibration,
+    and Var(m_k), Var(m_ka) <= 1 (worst case: all z's equal). Criteria, each at false-alarm rate 1e-3:
+      * mean:  |mean_k(m)| < t * sd(m) / sqrt(K)            (Student t, K-1 dof; CLT over the n z's of m_k)
+      * per axis (a one-axis coefficient error shows there, diluted 3x in the pooled mean; Bonferroni over 3):
+               |mean_k(m_ka)| < t' * sd_k(m_ka) / sqrt(K),  t' at 1e-3 / 3
+      * model: (K-1) sd(m)^2 < chi2_{1-1e-3}(K-1)           (Var(m_k) <= 1 in the worst case)
+      * unit variance: |sd_all^2 - 1| < t * sd(v) / sqrt(K)  (sd_all^2 = mean(v) - mean(z)^2; the mean(z)^2
+        term is O(1/K), small against the band)
+    The t bands use the observed spread between calibrations, so they must also be tight enough to mean something
+    (a test that passes by being vague is no test): the mean band must exclude a half-sigma offset (< 0.5) and the
+    variance band a doubled z variance (< 1)."""
+    K = len(parts)
+    m = np.array([z.mean() for z in parts])
+    ma = np.array([z.reshape(-1, 3).mean(axis=0) for z in parts])  # K x 3 (z's are plateau-major, axis-minor)
+    v = np.array([np.mean(z**2) for z in parts])
+    z = np.concatenate(parts)
+    t = stats.t.ppf(1 - FALSE_ALARM / 2, K - 1)
+    t_axis = stats.t.ppf(1 - FALSE_ALARM / 6, K - 1)
+    return {
+        "n": len(z), "mean_z": z.mean(), "sd_z": z.std(),
+        "mean_half_width": t * m.std(ddof=1) / np.sqrt(K), "sd_m": m.std(ddof=1),
+        "axis_t": ma.mean(axis=0) / (ma.std(axis=0, ddof=1) / np.sqrt(K)), "axis_t_bound": t_axis,
+        "sd_m_bound": np.sqrt(stats.chi2.ppf(1 - FALSE_ALARM, K - 1) / (K - 1)),
+        "var_half_width": t * v.std(ddof=1) / np.sqrt(K),
+    }
+
+
+def _zero_mean_ok(r: dict) -> bool:
+    return (r["mean_half_width"] < 0.5 and abs(r["mean_z"]) < r["mean_half_width"]
+            and bool(np.all(np.abs(r["axis_t"]) < r["axis_t_bound"])) and r["sd_m"] < r["sd_m_bound"])
+
+
+def _unit_variance_ok(r: dict) -> bool:
+    return r["var_half_width"] < 1 and abs(r["sd_z"] ** 2 - 1) < r["var_half_width"]
+
+
+@pytest.fixture(scope="module")
+def independent_z():
+    return _independent_calibration_z(N_CAL)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sensor", ["gyro", "accel"])
+def test_record_applied_to_other_runs_of_the_device_gives_zero_mean_z_scores(independent_z, sensor):
+    """Records fitted from a device's runs, applied to other runs of the same device: gyro and accel errors
+    consistent with the records' stated uncertainty, judged over K independent calibrations (statistics in
+    _unit_z_verdict): zero mean overall and per axis, per-calibration means within the model's spread."""
+    r = _unit_z_verdict(independent_z[sensor])
+    assert r["n"] > 1500, r
+    assert _zero_mean_ok(r), r
     # the same check without the calibration fails by orders of magnitude
-    assert np.concatenate(z_nominal).std() > 30
+    truth = example_device("TAC-Z01", "tactical", 5).for_power_cycle(0, 5)
+    nominal = Calibration("TAC-Z01", Triad.nominal(), Triad.nominal(), (), (), (), (), (), None, None, None)
+    plan = {"gyro": "quick_rate", "accel": "quick_24_position"}[sensor]
+    assert _z(nominal, plateaus_of(simulate_run(truth, plan, "n", seed=500, **SHORT)), sensor).std() > 30
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sensor", ["gyro", pytest.param("accel", marks=pytest.mark.xfail(strict=True, reason=(
+    "known gap: accel z sd 1.24 (z variance 1.54, band 1 +/- 0.45 over 24 calibrations): the applied calibration's "
+    "stated uncertainty has no term for the accelerometer bias instability (flicker, b = 20 ug) that moves the "
+    "bias between the calibration run, the follow-up run and its plateaus; with b = 0 the same "
+    "statistics give sd 0.96 (12 calibrations). "
+    "Remove this mark when correction_stderr / the record carry that term.")))])
+def test_record_applied_to_other_runs_of_the_device_gives_unit_variance_z_scores(independent_z, sensor):
+    """The same z-scores have unit variance over many plateaus: sd of all z's, band derived from the spread of the
+    K independent per-calibration mean squares (_unit_z_verdict)."""
+    r = _unit_z_verdict(independent_z[sensor])
+    assert _unit_variance_ok(r), r
 
 
 def test_assemble_takes_each_group_from_the_newest_record_holding_it(device):

@@ -291,7 +291,7 @@ def test_scale_factor_nonlinearity_compressive(tmp_path):
 
 
 def test_scale_factor_asymmetry_gyro_and_accel(tmp_path):
-    eg, ea = 1e-3, 8e-4
+    eg, ea = 2e-3, 8e-4  # gyro: the hinge fit now carries the 1/f noise between plateaus (stderr 2e-4)
     eff = EFFECTS["scale_factor_asymmetry"](gyro=(0, 0, eg), accel=(ea, 0, 0))
     _, ing = run_raw(tmp_path, rate_plan(), [eff], kind="rate")
     fit = fit_gyro_rate(segment_run(ing.manifest, ing.imu, ing.table).plateaus)

@@ -28,7 +28,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear
+from assets_lib.calibration.fit_core import (
+    DEFAULT_ALPHA,
+    DEFAULT_REL_TOL,
+    LinearFit,
+    fit_linear,
+    flicker_b,
+    flicker_prior_tau2,
+)
 from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
 from assets_lib.calibration.rate_fit import GyroRateFit, select_rows
 from assets_lib.calibration.triad import AXES, off_diagonal_matrix
@@ -210,7 +217,7 @@ def fit_accel_multiposition(
         fit = fit_linear(A, y, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha, nuisance=np.array(nuisance),
                          times=_times(p) if correlated_noise else None,
-                         flicker_tau2=None if flicker_b_mps2 is None else float(np.asarray(flicker_b_mps2)[i]) ** 2 / np.pi)
+                         flicker_tau2=None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])))
         ks = names.index("scale_factor")
         mis = {}
         for j in others:
@@ -328,7 +335,8 @@ def fit_gyro_static(
         A = np.column_stack(cols)
         fit = fit_linear(A, z, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,
-                         times=_times(p) if correlated_noise else None)
+                         times=_times(p) if correlated_noise else None,
+                         flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")))
         if np.any(Cm):
             # x = P z with z = y - W m: Cov += P W Cm W^T P^T (rate-fit uncertainty of the earth-rate projection)
             obs = np.flatnonzero(fit.observable)

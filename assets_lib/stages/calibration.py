@@ -17,8 +17,8 @@ from assets_lib.calibration.multiposition import (
 )
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
-from assets_lib.records.validity import CHI2_BAND  # one band for the gate and the record's status
-from assets_lib.stages.spec import StageOutput, stage
+from assets_lib.records.validity import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
+from assets_lib.stages.spec import Gate, StageOutput, stage
 from raw_schemas.manifest import Manifest
 
 CALIBRATION_KINDS = ("rate", "multiposition", "tumble")
@@ -29,8 +29,23 @@ def load_manifest(inputs) -> Manifest:
     return Manifest.model_validate_json(inputs.file("ingested_run", "manifest.json"))
 
 
+def enough_plateaus_kept(out: StageOutput) -> str | None:
+    """Gate: at least ``MIN_PLATEAU_FRACTION`` of the plan's steps give an unflagged plateau."""
+    p = out.tables["plateaus"]
+    frac = usable_plateau_fraction(p)
+    if frac >= MIN_PLATEAU_FRACTION:
+        return None
+    flagged = p.loc[p["flagged"].astype(bool), "flag_reason"].astype(str)
+    reasons = flagged.str.replace(r"\s*\([^)]*\)", "", regex=True).value_counts()
+    why = "; ".join(f"{n} x {r}" for r, n in reasons.items())
+    return (f"{frac:.0%} of {len(p)} plan steps gave a usable plateau (at least {MIN_PLATEAU_FRACTION:.0%} needed); "
+            f"flagged: {why}")[:400]
+
+
 @stage("plateaus", level="capture", group="calibration", code_version="1", upstream=["ingested_run"],
-       applies_to=CALIBRATION_KINDS)
+       applies_to=CALIBRATION_KINDS,
+       gates=[Gate("enough_plateaus_kept", enough_plateaus_kept,
+                   f"At least {MIN_PLATEAU_FRACTION:.0%} of the plan's steps give an unflagged plateau.")])
 def plateaus(key: str, inputs) -> StageOutput:
     """Plateau table per run: clock alignment to the table log (or detection from the data), settle trimming,
     whole revolutions, polynomial-residual outlier rejection, means with correlated-noise standard errors."""

@@ -27,6 +27,7 @@ from assets_lib.store import (
     split_capture_key,
     version_id,
 )
+from assets_lib.store.versioned import REJECTED
 from raw_schemas.readers import sha256_file
 
 #: the root stage whose stored metadata names a run's test kind
@@ -122,29 +123,43 @@ def upstream_keys(graph: StageGraph, spec: StageSpec, up: str, key: str, partiti
     return [key]
 
 
-def input_versions(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, archive,
-                   version_of: Callable | None = None, partitions_of: Callable | None = None) -> dict[str, str] | None:
-    """Versions of what ``spec`` computes ``key`` from, or None when an input is missing.
+def gather_inputs(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, archive,
+                  version_of: Callable | None = None, partitions_of: Callable | None = None
+                  ) -> tuple[dict[str, str] | None, str | None]:
+    """(versions of what ``spec`` computes ``key`` from, or None when an input is missing; the reason the partition
+    is blocked, when a capture-level upstream version was rejected by a quality gate).
 
-    ``version_of(stage, key)`` defaults to the stored CURRENT version; the reprocessing planner passes expected ones.
+    Device and fleet stages read the upstream partitions that exist and were not rejected. ``version_of(stage,
+    key)`` defaults to the stored CURRENT version; the reprocessing planner passes expected ones.
     """
     version_of = version_of or store.current_version
     partitions_of = partitions_of or store.partitions
     if spec.level == "capture" and not spec.upstream:
         d = archive.run_dir(key)
-        return raw_versions(d) if d.is_dir() else None
+        return (raw_versions(d) if d.is_dir() else None), None
     out: dict[str, str] = {}
     for up in spec.upstream:
         for k in upstream_keys(graph, spec, up, key, partitions_of):
             v = version_of(up, k)
             if v is None:
                 if spec.level == "capture":
-                    return None
+                    return None, None
+                continue
+            why = store.rejection(up, k, v)
+            if why is not None:
+                if spec.level == "capture":
+                    return None, f"{up} rejected ({why})"
                 continue
             out[f"{up}/{k}"] = v
     if spec.level != "capture" and not out:
-        return None
-    return out
+        return None, None
+    return out, None
+
+
+def input_versions(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, archive,
+                   version_of: Callable | None = None, partitions_of: Callable | None = None) -> dict[str, str] | None:
+    """Versions of what ``spec`` computes ``key`` from, or None when an input is missing or rejected."""
+    return gather_inputs(graph, spec, key, store, archive, version_of, partitions_of)[0]
 
 
 def expected_version(spec: StageSpec, inputs: dict[str, str]) -> str:
@@ -164,18 +179,22 @@ def run_test_kind(store: VersionedStore, archive, key: str, version_of: Callable
 
 @dataclass(frozen=True)
 class Decision:
-    """What a (stage, partition) needs: ``waiting`` (an input is missing), ``not applicable``, or ``compute`` at
-    ``version`` from ``inputs`` (reused when that version is stored)."""
+    """What a (stage, partition) needs: ``waiting`` (an input is missing), ``blocked`` (an upstream partition
+    failed a quality gate; ``reason`` says which), ``not applicable``, or ``compute`` at ``version`` from
+    ``inputs`` (reused when that version is stored)."""
 
     status: str
     inputs: dict[str, str] | None = None
     version: str | None = None
     kind: str | None = None
+    reason: str = ""
 
 
 def decide(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, archive,
            version_of: Callable | None = None, partitions_of: Callable | None = None) -> Decision:
-    inputs = input_versions(graph, spec, key, store, archive, version_of, partitions_of)
+    inputs, blocked = gather_inputs(graph, spec, key, store, archive, version_of, partitions_of)
+    if blocked is not None:
+        return Decision("blocked", reason=blocked)
     if inputs is None:
         return Decision("waiting")
     if spec.applies_to is not None and spec.level == "capture":
@@ -189,7 +208,8 @@ def decide(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, 
 # Computing partitions
 # ---------------------------------------------------------------------------------------------------------------
 #: outcome statuses: ``written`` / ``reused`` (the partition has its version), ``waiting`` (an input is missing),
-#: ``not applicable`` (test kind), ``no output`` (the compute returned None), ``failed`` (with its reason)
+#: ``blocked`` (an upstream partition failed a gate), ``not applicable`` (test kind), ``no output`` (the compute
+#: returned None), ``failed`` (the compute raised, or a gate rejected its output: ``version`` is then set)
 DONE = ("written", "reused")
 
 
@@ -223,22 +243,42 @@ def compute_partition(graph: StageGraph, spec: StageSpec, key: str, store: Versi
     d = decide(graph, spec, key, store, archive)
     if d.status == "waiting":
         return Outcome(spec.name, key, "waiting", reason="inputs missing")
+    if d.status == "blocked":
+        return Outcome(spec.name, key, "blocked", reason=d.reason)
     if d.status == "not applicable":
         return Outcome(spec.name, key, "not applicable", reason=f"test kind {d.kind}")
     if store.exists(spec.name, key, d.version):
         store.write(spec.name, key, d.version, {})  # only moves CURRENT back if needed
-        return Outcome(spec.name, key, "reused", d.version)
+        why = store.rejection(spec.name, key, d.version)
+        return Outcome(spec.name, key, "reused" if why is None else "failed", d.version, reason=why or "")
     try:
         out = spec.compute(key, StoreView(store, d.inputs, key, archive, run_id))
     except Exception as e:  # noqa: BLE001 - one bad partition must not stop the batch; the outcome says why
-        return Outcome(spec.name, key, "failed", reason=f"{type(e).__name__}: {e}")
+        reason = f"{type(e).__name__}: {e}"
+        store.note_failure(spec.name, key, d.version, reason)
+        return Outcome(spec.name, key, "failed", reason=reason)
     if out is None:
         return Outcome(spec.name, key, "no output")
+    failures = gate_failures(spec, out)
     files = dict(out.files)
     files.update({f"{n}.png": png for n, png in out.plots.items()})
-    store.write(spec.name, key, d.version, out.tables,
-                meta={"code_version": spec.code_version, "inputs": d.inputs, **out.meta}, files=files)
-    return Outcome(spec.name, key, "written", d.version, summary=dict(out.summary), plots=dict(out.plots))
+    meta = {"code_version": spec.code_version, "inputs": d.inputs, **out.meta}
+    if failures:
+        files[REJECTED] = ("\n".join(failures) + "\n").encode()
+        meta["gate_failures"] = failures
+    store.write(spec.name, key, d.version, out.tables, meta=meta, files=files)
+    return Outcome(spec.name, key, "failed" if failures else "written", d.version, reason="; ".join(failures),
+                   summary=dict(out.summary), plots=dict(out.plots))
+
+
+def gate_failures(spec: StageSpec, out) -> list[str]:
+    """``gate <name>: <reason>`` for every gate of ``spec`` the output fails."""
+    out_list = []
+    for g in spec.gates:
+        why = g.check(out)
+        if why:
+            out_list.append(f"gate {g.name}: {why}")
+    return out_list
 
 
 def stage_keys(spec: StageSpec, capture_keys: Iterable[str], device_keys: Iterable[str]) -> list[str]:
@@ -253,7 +293,7 @@ def recompute_capture(graph: StageGraph, key: str, store: VersionedStore, archiv
     versions = {}
     for spec in graph.capture_closure(stages):
         o = compute_partition(graph, spec, key, store, archive)
-        if o.failed:
+        if o.failed and o.version is None:  # the compute raised (a gate rejection is an outcome, not an error)
             raise RuntimeError(f"stage {spec.name} failed for {key}: {o.reason}")
         if o.done:
             versions[f"{spec.name}/{key}"] = o.version

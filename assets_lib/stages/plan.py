@@ -46,6 +46,11 @@ class ReprocessPlan:
     no_output: list[tuple[str, str, str]] = field(default_factory=list)  # (stage, key, version) skipped per ledger
     not_applicable: int = 0
     waiting: int = 0
+    blocked: int = 0  # an upstream partition failed a quality gate
+    #: (stage, key, reason) of partitions whose expected version failed: the compute raised (noted in the store)
+    #: or a quality gate rejected the stored output; and of partitions blocked by such an upstream
+    failed: list[tuple[str, str, str]] = field(default_factory=list)
+    blocked_by: list[tuple[str, str, str]] = field(default_factory=list)
     up_to_date: int = 0
 
     @property
@@ -135,18 +140,28 @@ def plan_reprocess(graph: StageGraph, store: VersionedStore, archive, capture_ke
     for spec in graph:
         for key in stage_keys(spec, capture_keys, device_keys):
             d = decide(graph, spec, key, store, archive, version_of, partitions_of)
-            if d.status == "waiting":
+            if d.status in ("waiting", "blocked"):
                 expected[(spec.name, key)] = None
-                plan.waiting += 1
+                plan.waiting += d.status == "waiting"
+                if d.status == "blocked":
+                    plan.blocked += 1
+                    plan.blocked_by.append((spec.name, key, d.reason))
                 continue
             if d.status == "not applicable":
                 expected[(spec.name, key)] = None
                 plan.not_applicable += 1
                 continue
             current = store.current_version(spec.name, key)
+            failure = store.failure(spec.name, key, d.version) if use_ledger else None
             if current == d.version:
                 expected[(spec.name, key)] = d.version
                 plan.up_to_date += 1
+                why = store.rejection(spec.name, key, d.version)
+                if why is not None:
+                    plan.failed.append((spec.name, key, why))
+            elif failure is not None and not store.exists(spec.name, key, d.version):
+                expected[(spec.name, key)] = None  # the compute failed at this version: not retried, reported
+                plan.failed.append((spec.name, key, failure))
             elif ledger.get(f"{spec.name}/{key}") == d.version and not store.exists(spec.name, key, d.version):
                 expected[(spec.name, key)] = None  # produced no output at this version: do not retry
                 plan.no_output.append((spec.name, key, d.version))

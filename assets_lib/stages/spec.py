@@ -29,6 +29,17 @@ class StageOutput:
 
 
 @dataclass(frozen=True)
+class Gate:
+    """A quality gate of a stage: ``check(output)`` returns None when the partition passes, else a one-line reason
+    naming the figure that failed. A partition that fails a gate keeps its output (stored, for diagnosis) but is
+    marked rejected: its status is failed and no downstream stage computes from it. Other partitions go on."""
+
+    name: str
+    check: Callable[[StageOutput], str | None]
+    description: str = ""
+
+
+@dataclass(frozen=True)
 class StageSpec:
     name: str
     level: str  # 'capture' | 'device' | 'fleet'
@@ -39,6 +50,7 @@ class StageSpec:
     applies_to: tuple[str, ...] | None = None  # test kinds a capture stage applies to (None: all)
     kinds: tuple[str, ...] = ("parquet",)
     description: str = ""
+    gates: tuple[Gate, ...] = ()
 
     @functools.cached_property
     def code_version(self) -> str:
@@ -48,7 +60,7 @@ class StageSpec:
 
 
 def stage(name: str, *, level: str, group: str, code_version: str, upstream=(), applies_to=None,
-          kinds=("parquet",), description: str = ""):
+          kinds=("parquet",), description: str = "", gates=()):
     """Decorator: the function becomes the ``compute`` of a ``StageSpec`` (returned in its place)."""
     if level not in LEVELS:
         raise ValueError(f"stage {name!r}: level {level!r} is not one of {LEVELS}")
@@ -56,6 +68,6 @@ def stage(name: str, *, level: str, group: str, code_version: str, upstream=(), 
     def deco(compute) -> StageSpec:
         doc = description or (compute.__doc__ or "").strip().splitlines()[0]
         return StageSpec(name, level, str(code_version), tuple(upstream), compute, group,
-                         tuple(applies_to) if applies_to else None, tuple(kinds), doc)
+                         tuple(applies_to) if applies_to else None, tuple(kinds), doc, tuple(gates))
 
     return deco

@@ -24,6 +24,8 @@ import pyarrow.parquet as pq
 
 CURRENT = "CURRENT"
 META = "meta.json"
+#: file of a version whose output a quality gate rejected (its text is the reason); downstream stages skip it
+REJECTED = "REJECTED.txt"
 
 
 def version_id(asset: str, code_version: str, inputs: dict[str, str] | None = None, params: dict | None = None) -> str:
@@ -126,6 +128,30 @@ class VersionedStore:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, cur)
+
+    def rejection(self, asset: str, partition: str, version: str | None = None) -> str | None:
+        """Why a quality gate rejected this version (None when it was not rejected, or does not exist)."""
+        version = version or self.current_version(asset, partition)
+        if version is None:
+            return None
+        p = self.partition_dir(asset, partition) / version / REJECTED
+        return p.read_text().strip() if p.is_file() else None
+
+    def note_failure(self, asset: str, partition: str, version: str, reason: str) -> None:
+        """Remember that computing ``version`` failed and why (``FAILED-<version>.txt`` beside the versions; written
+        atomically, never read as a version): the run summary reports it, and reprocessing does not retry the same
+        version until its code or inputs change."""
+        pdir = self.partition_dir(asset, partition)
+        pdir.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".FAILED.", dir=pdir)
+        with os.fdopen(fd, "w") as f:
+            f.write(reason.rstrip() + "\n")
+        os.replace(tmp, pdir / f"FAILED-{version}.txt")
+
+    def failure(self, asset: str, partition: str, version: str) -> str | None:
+        """The reason noted by ``note_failure`` for ``version`` (None when none was noted)."""
+        p = self.partition_dir(asset, partition) / f"FAILED-{version}.txt"
+        return p.read_text().strip() if p.is_file() else None
 
     def read(self, asset: str, partition: str, table: str, version: str | None = None) -> pd.DataFrame:
         return pd.read_parquet(self.version_dir(asset, partition, version) / f"{table}.parquet")

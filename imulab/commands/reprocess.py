@@ -66,6 +66,8 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
                 click.echo(f"    {s.key}: {s.reason} ({_short(s.current)} -> {_short(s.expected)})")
             if limit and len(items) > limit:
                 click.echo(f"    ... {len(items) - limit} more")
+        for stage, key, reason in plan.failed[: limit or None]:
+            click.echo(f"  failed at this version (not retried; --retry-no-output retries): {stage} {key}: {reason}")
         if plan.empty:
             click.echo("nothing to reprocess")
             return

@@ -1,7 +1,13 @@
-"""``imulab run``: materialize the Dagster pipeline over a lab archive (the main job)."""
+"""``imulab run``: bring every output of a lab archive up to date through Dagster, then print a summary.
+
+Exit status: 0 when every partition of every stage is computed (warnings allowed), 1 when any partition failed
+(an ingest error, a compute error, a quality gate) or a Dagster run failed, 2 for unusable arguments (e.g. an
+``--archive`` that is not a folder of runs).
+"""
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -17,11 +23,12 @@ from imulab.commands import workspace_options
 @workspace_options("Landing folder of the lab archive. Default: <data>/landing, simulated first if empty.")
 @click.option("--verbose", is_flag=True, help="Show Dagster's event log.")
 def command(landing, store, data_dir, dagster_home, verbose):
-    """Ingest and calibrate every completed run of a lab archive through Dagster, then print where outputs are.
+    """Ingest and calibrate every completed run of a lab archive through Dagster, then print a summary.
 
     With no --archive, the embedded default (a simulated lab archive) is written to <data>/landing first.
-    Runs are batched: one Dagster run for all per-run stages, one for per-device stages, one for the fleet.
-    Re-running reuses every unchanged output (nothing is rewritten).
+    The reprocessing plan runs first: only partitions whose code or inputs changed are computed, in batched runs
+    (captures, then devices, then the fleet); an unchanged archive launches nothing. The summary names every
+    failed partition with its reason, counts warnings, and the exit status is 1 when anything failed.
     """
     data = Path(data_dir)
     _hold_workspace(data, store, dagster_home)  # released when the command ends
@@ -33,26 +40,47 @@ def command(landing, store, data_dir, dagster_home, verbose):
             t0 = time.time()
             n = len(write_archive(landing, ArchiveSpec()))
             click.echo(f"simulated the default lab archive: {n} runs -> {landing.resolve()} ({time.time() - t0:.1f} s)")
+    elif not Path(landing).is_dir():
+        raise click.BadParameter(f"{landing} is not a folder", param_hint="--archive")
     landing = Path(landing).resolve()
     store = Path(store or data / "store").resolve()
     home = Path(dagster_home or os.environ.get("DAGSTER_HOME") or data / "dagster_home").resolve()
     if not verbose:
         warnings.filterwarnings("ignore")
-    from pipelines.definitions import build_definitions
+    from assets_lib.stages.plan import plan_reprocess
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive, VersionedStore
+
+    archive = LandingArchive(landing)
+    complete, waiting = archive.complete_runs(), archive.incomplete_runs()
+    if not complete and not waiting:
+        raise click.BadParameter(f"no run folders (<device>/<run>/) in {landing}", param_hint="--archive")
+    vstore = VersionedStore(store)
+    t0 = time.time()
     from pipelines.instance import fail_abandoned_runs, note_archive
-    from pipelines.launch import materialize_archive, open_instance, register_landed_runs
+    from pipelines.launch import LaunchSummary, open_instance, register_landed_runs
+    from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
 
-    defs = build_definitions(str(landing), str(store))
-    t0 = time.time()
     note_archive(store, landing)  # lets `imulab verify` find the archive from the store
     with open_instance(home) as instance:
         for rid in fail_abandoned_runs(instance):
             click.echo(f"marked Dagster run {rid} failed: the process running it was killed before it finished")
         new = register_landed_runs(instance, LabArchive(landing_dir=str(landing)))
-        n_all = len(instance.get_dynamic_partitions("captures"))
-        click.echo(f"{n_all} captured runs registered ({len(new)} new) from {landing}")
-        summary = materialize_archive(defs, instance, quiet=not verbose)
+        cap, dev = registered_keys(instance)
+        click.echo(f"{len(cap)} captured runs registered ({len(new)} new) from {landing}")
+        plan = plan_reprocess(STAGES, vstore, archive, cap, dev)
+        summary = LaunchSummary()
+        if plan.empty:
+            click.echo(f"everything up to date ({plan.up_to_date} partitions checked in {time.time() - t0:.1f} s): "
+                       "nothing launched")
+        else:
+            from pipelines import reprocess
+            from pipelines.definitions import build_definitions
+
+            defs = build_definitions(str(landing), str(store))
+            summary = reprocess.run_plan(defs, instance, plan, vstore, quiet=not verbose)
+            plan = plan_reprocess(STAGES, vstore, archive, cap, dev)  # what the store holds now
     for job, run_id, ok in summary.runs:
         click.echo(f"  {'ok  ' if ok else 'FAIL'} {job} run {run_id}")
     click.echo(f"pipeline finished in {time.time() - t0:.1f} s")
@@ -61,8 +89,50 @@ def command(landing, store, data_dir, dagster_home, verbose):
     print_outputs(store, echo=click.echo)
     click.echo(f"Dagster instance: {home}  (browse: DAGSTER_HOME={home} IMULAB_LANDING={landing} "
                f"IMULAB_STORE={store} dagster dev -w workspace.yaml)")
-    if not summary.success:
-        sys.exit(1)
+    failed = print_summary(plan, summary, vstore, waiting, echo=click.echo)
+    sys.exit(1 if failed else 0)
+
+
+def record_warnings(vstore) -> list[str]:
+    """Records whose content status is not valid (``content.status`` / ``content.status_reasons``)."""
+    out = []
+    for dev in vstore.partitions("calibration_record"):
+        for f in sorted(vstore.version_dir("calibration_record", dev).glob("*.json")):
+            if f.name == "meta.json":
+                continue
+            try:
+                content = json.loads(f.read_text()).get("content", {})
+            except (OSError, ValueError):
+                continue
+            status = content.get("status")
+            if status is not None and status != "valid":
+                reasons = "; ".join(map(str, content.get("status_reasons") or [])) or "no reason given"
+                out.append(f"record {dev}/{f.stem}: {status} ({reasons})")
+    return out
+
+
+def print_summary(plan, summary, vstore, waiting: list[str], echo=print) -> bool:
+    """Failed partitions with their reasons, waiting runs, warnings; returns True when anything failed."""
+    failed = list(plan.failed)
+    runs_failed = [f"{job} run {rid}" for job, rid, ok in summary.runs if not ok]
+    warns = [*summary.warnings, *record_warnings(vstore)]
+    echo("\nsummary:")
+    for stage, key, reason in failed:
+        echo(f"  FAILED  {stage} {key}: {reason}")
+    for r in runs_failed:
+        echo(f"  FAILED  Dagster {r} (see its event log)")
+    if plan.blocked_by:
+        echo(f"  {len(plan.blocked_by)} partition(s) not computed because an upstream partition failed")
+    for key in waiting:
+        echo(f"  WAITING {key}: no _COMPLETE marker yet (the capture job is still writing, or died)")
+    echo(f"  {len(warns)} warning(s)" + (":" if warns else ""))
+    for w in warns[:20]:
+        echo(f"    {w}")
+    if len(warns) > 20:
+        echo(f"    ... {len(warns) - 20} more")
+    bad = bool(failed or runs_failed)
+    echo(f"  status: {'FAILED' if bad else 'ok'} ({len(failed)} failed partition(s); exit status {1 if bad else 0})")
+    return bad
 
 
 def _hold_workspace(data: Path, store, dagster_home):
