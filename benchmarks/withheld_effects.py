@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from assets_lib.sim.simulator import (  # noqa: E402
+from assets_lib.sim.simulator import (
     DEFAULT_EFFECTS,
     example_device,
     simulate_run,
@@ -155,7 +155,7 @@ def cases(tier: str) -> list[dict]:
     grades = ("navigation", "tactical", "consumer")
     n_null = 10 if tier == "quick" else 100
     for i in range(n_null):
-        C.append(dict(kind="none", grade=grades[i % 3], params={}, category="null", family=None))
+        C.append({"kind": "none", "grade": grades[i % 3], "params": {}, "category": "null", "family": None})
     lib = [  # family, params (tactical), library magnitude, sensor channel, category
         ("temperature_bias", {"k": 0.002 * DEG, "channel": 2}, 0.002 * DEG),
         ("temperature_scale_factor", {"k": 40e-6, "channel": 0}, 40e-6),
@@ -171,8 +171,8 @@ def cases(tier: str) -> list[dict]:
     ]
     library_form = {"bias_ramp", "scale_factor_asymmetry", "lever_arm", "table_wobble", "g_sensitivity", "timebase_error"}
     for i, (fam, p, mag) in enumerate(lib):
-        C.append(dict(kind=fam, grade="tactical", params=p, category="family_clear", family=fam, magnitude=mag,
-                      library_form=fam in library_form))
+        C.append({"kind": fam, "grade": "tactical", "params": p, "category": "family_clear", "family": fam, "magnitude": mag,
+                      "library_form": fam in library_form})
     near = lib if tier == "full" else lib[:5]
     for fam, p, mag in near:
         scale = 0.15
@@ -180,25 +180,25 @@ def cases(tier: str) -> list[dict]:
              (v * scale if k in ("k", "a", "eps", "a2") else v) for k, v in p.items()}
         if fam == "scale_factor_nonlinearity":
             q["fs"] = p["fs"] / np.sqrt(scale)
-        C.append(dict(kind=fam, grade="tactical", params=q, category="family_near", family=fam, magnitude=mag * scale,
-                      library_form=fam in library_form))
+        C.append({"kind": fam, "grade": "tactical", "params": q, "category": "family_near", "family": fam, "magnitude": mag * scale,
+                      "library_form": fam in library_form})
     if tier == "full":
         for g in ("navigation", "consumer"):
             for fam, p, mag in lib:
-                C.append(dict(kind=fam, grade=g, params=p, category="family_clear", family=fam, magnitude=mag,
-                              library_form=fam in library_form))
+                C.append({"kind": fam, "grade": g, "params": p, "category": "family_clear", "family": fam, "magnitude": mag,
+                              "library_form": fam in library_form})
     for i in range(2 if tier == "quick" else 8):
-        C.append(dict(kind="temperature_bias", grade="tactical", params={"k": 0.002 * DEG, "channel": i % 3},
-                      category="confounded", family="temperature_bias", magnitude=0.002 * DEG, confounded=True))
+        C.append({"kind": "temperature_bias", "grade": "tactical", "params": {"k": 0.002 * DEG, "channel": i % 3},
+                      "category": "confounded", "family": "temperature_bias", "magnitude": 0.002 * DEG, "confounded": True})
     for i in range(3 if tier == "quick" else 10):
-        C.append(dict(kind="noise_gm", grade=("tactical", "navigation", "consumer")[i % 3],
-                      params={"sigma": 8 * GYRO_B[("tactical", "navigation", "consumer")[i % 3]], "tau": 20.0,
-                              "channel": 0}, category="noise_only", family="noise_model"))
+        C.append({"kind": "noise_gm", "grade": ("tactical", "navigation", "consumer")[i % 3],
+                      "params": {"sigma": 8 * GYRO_B[("tactical", "navigation", "consumer")[i % 3]], "tau": 20.0,
+                              "channel": 0}, "category": "noise_only", "family": "noise_model"})
     outside = [("omega_abs_omega", {"k": 3e-5, "channel": 2}), ("vibration", {"amp": 0.02, "f_hz": 7.3, "channel": 4}),
                ("bias_step", {"step": 0.01 * DEG, "t_s": 500.0, "channel": 1, "run_seed_hit": None})]
     for kind, p in (outside if tier == "quick" else outside * 3):
-        C.append(dict(kind=kind, grade="tactical", params=p, category="outside", family=None))
-    C.append(dict(kind="latency", grade="tactical", params={"delay_s": 0.005}, category="not_testable", family="latency"))
+        C.append({"kind": kind, "grade": "tactical", "params": p, "category": "outside", "family": None})
+    C.append({"kind": "latency", "grade": "tactical", "params": {"delay_s": 0.005}, "category": "not_testable", "family": "latency"})
     for i, c in enumerate(C):
         c["device_id"] = f"WH-{i:03d}-{c['category'][:4].upper()}"
     return C
@@ -338,11 +338,11 @@ def score(root: Path) -> dict:
                 min(abs(e["ci_lo"]), abs(e["ci_hi"])) <= m <= max(abs(e["ci_lo"]), abs(e["ci_hi"])) \
                 if np.sign(e["ci_lo"] or 0) == np.sign(e["ci_hi"] or 0) else (e["ci_lo"] <= m <= e["ci_hi"] or
                                                                               e["ci_lo"] <= -m <= e["ci_hi"])
-        rows.append(dict(device=dev, category=t["category"], truth=t.get("family") or t["kind"], verdict=r["verdict"],
-                         top1=fams[0] if fams else None, in_amb=(t.get("family") in amb) if t.get("family") else None,
-                         loc=loc, cov=cov, shrink=r["shrink"]["ratio"],
-                         top_view=(top["view"], top["run_id"], top["channel"]) if top else None))
-    by = lambda cat: [x for x in rows if x["category"] == cat]  # noqa: E731
+        rows.append({"device": dev, "category": t["category"], "truth": t.get("family") or t["kind"], "verdict": r["verdict"],
+                         "top1": fams[0] if fams else None, "in_amb": (t.get("family") in amb) if t.get("family") else None,
+                         "loc": loc, "cov": cov, "shrink": r["shrink"]["ratio"],
+                         "top_view": (top["view"], top["run_id"], top["channel"]) if top else None})
+    by = lambda cat: [x for x in rows if x["category"] == cat]
     null = by("null")
     res["null_false_positive"] = _ci(sum(x["verdict"] != "no_gap" for x in null), len(null))
     fam = by("family_clear") + by("family_near")

@@ -17,13 +17,13 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-import withheld_effects as wh  # noqa: E402
+import withheld_effects as wh
 
-from assets_lib.simreal import attribution as at  # noqa: E402
-from assets_lib.simreal.design import build_design, real_rate_windows  # noqa: E402
-from assets_lib.simreal.experiment import load_device  # noqa: E402
-from assets_lib.simreal.twin import fit_twin  # noqa: E402
-from assets_lib.simreal.views import bh_q  # noqa: E402
+from assets_lib.simreal import attribution as at
+from assets_lib.simreal.design import build_design, real_rate_windows
+from assets_lib.simreal.experiment import load_device
+from assets_lib.simreal.twin import fit_twin
+from assets_lib.simreal.views import bh_q
 
 SCHEMA = json.loads((REPO / "raw_schemas" / "diagnosis_report.schema.json").read_text())
 

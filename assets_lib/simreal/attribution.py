@@ -58,7 +58,7 @@ class Totals:
     carries: np.ndarray
 
     @classmethod
-    def of(cls, d: Design, blocks=(0, 1, 2)) -> "Totals":
+    def of(cls, d: Design, blocks=(0, 1, 2)) -> Totals:
         bl = list(blocks)
         return cls(d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries)
 
@@ -107,7 +107,7 @@ def cols_of(atoms: list[int]) -> list[int]:
 
 
 def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
-    fam, ch, atoms = GROUPS[gi]
+    _fam, _ch, atoms = GROUPS[gi]
     carry = np.flatnonzero(t.carries[:, atoms].any(axis=1))
     if carry.size == 0:
         return None

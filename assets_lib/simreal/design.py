@@ -105,10 +105,10 @@ def block_a_features(p: pd.DataFrame, inp: RunInputs) -> dict:
         if lag:
             c = np.concatenate([[0.0], np.cumsum(fx.lagged_temperature(inp.t_s, inp.temperature_degc, lag))])
             lags[float(lag)] = (c[i1] - c[i0]) / (i1 - i0)
-    return dict(n=len(p), omega=w, omega_motion=w - we, force=f, temp=p["temperature_degc_mean"].to_numpy(float),
-                t_on=tmid + ton0, t_run=tmid,
-                is_rate=(p["kind"].to_numpy() == "rate") & (np.abs(p["commanded_rate_radps"].to_numpy(float)) > 0),
-                step=p["step_index"].to_numpy(float), temp_lag=lags)
+    return {"n": len(p), "omega": w, "omega_motion": w - we, "force": f, "temp": p["temperature_degc_mean"].to_numpy(float),
+                "t_on": tmid + ton0, "t_run": tmid,
+                "is_rate": (p["kind"].to_numpy() == "rate") & (np.abs(p["commanded_rate_radps"].to_numpy(float)) > 0),
+                "step": p["step_index"].to_numpy(float), "temp_lag": lags}
 
 
 def _project(yw, Xw, Nw):
@@ -272,8 +272,8 @@ def real_rate_windows(runs, processed, imus: dict, rails=(None, None)) -> dict:
             continue
         ii = np.concatenate(idx_l)
         grp = np.concatenate(grp_l)
-        feat = dict(n=ii.size, theta=inp.table_angle_rad[ii], rate_t=inp.table_rate_radps[ii], u=inp.table_axis_b[ii],
-                    e1=inp.tilt_e1_b[ii], e2=inp.tilt_e2_b[ii], force=inp.f_b_mps2[ii])
+        feat = {"n": ii.size, "theta": inp.table_angle_rad[ii], "rate_t": inp.table_rate_radps[ii], "u": inp.table_axis_b[ii],
+                    "e1": inp.tilt_e1_b[ii], "e2": inp.tilt_e2_b[ii], "force": inp.f_b_mps2[ii]}
         cnt = np.bincount(grp)
         Xj = {}
         for j in range(6):
@@ -285,5 +285,5 @@ def real_rate_windows(runs, processed, imus: dict, rails=(None, None)) -> dict:
             Xb = X.reshape(-1, DECIMATE, P).mean(axis=1)
             means = np.stack([np.bincount(grp, Xb[:, c]) / cnt for c in range(P)], axis=1)
             Xj[j] = Xb - means[grp]
-        out[inp.run_id] = dict(idx=ii, grp=grp, steps=steps, X=Xj)
+        out[inp.run_id] = {"idx": ii, "grp": grp, "steps": steps, "X": Xj}
     return out

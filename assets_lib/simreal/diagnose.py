@@ -89,7 +89,6 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     aug = twin.with_effects(effects)
     vt_after = None
     aug_coefs = []
-    E_aug_floor = []
     if effects:
         t3 = time.time()
         n_aug = aug_replicates if aug_replicates is not None else max(8, replicates // 2)

@@ -148,10 +148,9 @@ def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np
                     z[:, m] = wt * np.cross(e, u)[:, j]
                 else:
                     z[:, m] = -np.cross(e, f)[:, j - 3]
-    elif block == "C":
-        if family == "timebase_error":
-            # segmentation's clock drift of a run whose IMU stamps run fast, t_imu = (1 + eps) t_table, is -1e6 eps
-            z[:, 0] = -1e6
+    elif block == "C" and family == "timebase_error":
+        # segmentation's clock drift of a run whose IMU stamps run fast, t_imu = (1 + eps) t_table, is -1e6 eps
+        z[:, 0] = -1e6
     return z
 
 

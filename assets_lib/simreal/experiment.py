@@ -19,7 +19,10 @@ import numpy as np
 import pandas as pd
 from scipy.signal import welch
 
-from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import CHANNELS, overlapping_avar, segment_run
 from assets_lib.sim.earth import site_gravity_mps2
@@ -138,8 +141,8 @@ def _fit_residual_rows(fit_axes, sensor: str, run_id: str) -> list[dict]:
     for ax in fit_axes:
         f = ax.fit
         for k in range(len(f.residual)):
-            rows.append(dict(run_id=run_id, row=k, channel=f"{sensor}_{ax.axis}", residual=float(f.residual[k]),
-                             std_residual=float(f.std_residual[k]), used=bool(f.used[k])))
+            rows.append({"run_id": run_id, "row": k, "channel": f"{sensor}_{ax.axis}", "residual": float(f.residual[k]),
+                             "std_residual": float(f.std_residual[k]), "used": bool(f.used[k])})
     return rows
 
 

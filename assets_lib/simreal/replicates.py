@@ -61,7 +61,7 @@ def run_replicates(twin: TwinModel, runs, windows, rk, n: int, seed: int, worker
                    progress=None, key: str = "base") -> list[Replicate]:
     """``n`` replicates (indices 0..n-1) of ``twin``; ``progress(done, n)`` after each."""
     workers = default_workers() if workers is None else workers
-    _STATE[key] = dict(twin=twin, runs=runs, windows=windows, rk=rk)
+    _STATE[key] = {"twin": twin, "runs": runs, "windows": windows, "rk": rk}
     out = []
     try:
         if workers <= 1 or n <= 1:

@@ -12,9 +12,6 @@ from pathlib import Path
 
 import numpy as np
 
-from assets_lib.simreal.design import ATOMS
-from assets_lib.simreal.effects import CHANNEL_NAMES
-
 _PLAIN_VIEW = {
     "plateau_residual": "a single plateau mean",
     "residual_vs_rate_squared": "the rate-plateau residuals, growing with rate squared",
@@ -164,12 +161,12 @@ def plots(diag) -> dict:
 def render_html(rep: dict, diag=None) -> str:
     e = html.escape
     figs = plots(diag) if diag is not None else {}
-    parts = [f"<html><head><meta charset='utf-8'><title>Sim-to-real diagnosis {e(rep['device_id'])}</title>"
-             "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td,th{padding:2px 6px;font-size:12px}"
-             "table{border-collapse:collapse}tr:nth-child(even){background:#f4f4f4}</style></head><body>",
+    parts = [(f"<html><head><meta charset='utf-8'><title>Sim-to-real diagnosis {e(rep['device_id'])}</title>"
+              "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}td,th{padding:2px 6px;font-size:12px}"
+              "table{border-collapse:collapse}tr:nth-child(even){background:#f4f4f4}</style></head><body>"),
              f"<h1>Sim-to-real diagnosis: {e(rep['device_id'])}</h1>",
-             f"<p><b>Verdict: {e(rep['verdict'])}</b> ({len(rep['runs'])} runs; {rep.get('replicates', {}).get('base')} "
-             "replicates of the fitted twin through the same segmentation and fits)</p><ul>"]
+             (f"<p><b>Verdict: {e(rep['verdict'])}</b> ({len(rep['runs'])} runs; {rep.get('replicates', {}).get('base')} "
+              "replicates of the fitted twin through the same segmentation and fits)</p><ul>")]
     parts += [f"<li>{e(a)}</li>" for a in answers(rep)]
     parts.append("</ul>")
     if "where" in figs:
@@ -214,6 +211,7 @@ def write_atomic(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
     with os.fdopen(fd, "w") as f:
         f.write(text)
+    os.chmod(tmp, 0o644)
     os.replace(tmp, path)
 
 

@@ -58,7 +58,7 @@ class TwinModel:
         k = min(self.cycles, key=lambda c: abs(c - pc))
         return self.cycles[k]
 
-    def with_effects(self, effects) -> "TwinModel":
+    def with_effects(self, effects) -> TwinModel:
         return TwinModel(self.device_id, self.cycles, self.bias, self.noise, self.rails, tuple(effects))
 
     def to_json(self) -> dict:
@@ -82,7 +82,10 @@ class TwinModel:
 
 
 def _cycle_model(exp: DeviceExperiment, pc: int) -> CycleModel | None:
-    from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
+    from assets_lib.calibration.multiposition import (
+        fit_accel_multiposition,
+        fit_gyro_static,
+    )
     from assets_lib.calibration.rate_fit import fit_gyro_rate
 
     runs = [r for r in exp.runs if r.power_cycle == pc]
@@ -126,7 +129,7 @@ def _rails(exp: DeviceExperiment) -> tuple:
     out = []
     for sl in (slice(0, 3), slice(3, 6)):
         rail = None
-        for rid, imu in exp.imu.items():
+        for imu in exp.imu.values():
             y = np.abs(imu[list(CHANNELS)[sl]].to_numpy(float))
             top = float(np.nanmax(y))
             if top > 0 and np.mean(y >= top * (1 - 1e-9)) > 1e-3:  # pile-up at one value: a rail
@@ -171,8 +174,8 @@ def fit_twin(exp: DeviceExperiment) -> TwinModel:
         p = p[~p["flagged"] & (p["n_samples"] > 0)]
         w = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
         f = p[[f"f_ref_{a}_mps2" for a in AX]].to_numpy(float)
-        y = p[list(f"{c}_mean" for c in CHANNELS)].to_numpy(float)
-        s = p[list(f"{c}_sem" for c in CHANNELS)].to_numpy(float)
+        y = p[[f"{c}_mean" for c in CHANNELS]].to_numpy(float)
+        s = p[[f"{c}_sem" for c in CHANNELS]].to_numpy(float)
         g, a = twin.cycle(r.power_cycle).predict(w, f)
         res = y - np.column_stack([g, a])
         ok = np.ones(len(p), bool)
