@@ -1,4 +1,4 @@
-"""Apply a calibration: invert the sensor error model (docs/design.md, seed 000 eq. 1-2) sample by sample.
+"""Apply a calibration: invert the sensor error model (docs/design.md, [SEED000] eq. 1-2) sample by sample.
 
     accel: f = M_a^-1 (y_a - b_a - K2 f**2 - f * (Kc f))      M = diag(K)(I + E); fixed-point iteration from
                                                               f_0 = M_a^-1 (y_a - b_a), iterated to convergence
@@ -48,7 +48,7 @@ def _as3(a, name: str) -> np.ndarray:
 
 
 def forward(cal: Calibration, omega_b_radps, f_b_mps2) -> Corrected:
-    """Seed 000 eq. 1-2 (docs/design.md): the outputs the modelled sensor gives for true inputs (no noise)."""
+    """[SEED000] eq. 1-2 (docs/design.md): the outputs the modelled sensor gives for true inputs (no noise)."""
     w, f = _as3(omega_b_radps, "omega_b_radps"), _as3(f_b_mps2, "f_b_mps2")
     g, a = cal.gyro, cal.accel
     yg = w @ g.matrix().T + g.bias + f @ g.g_sensitivity.T
@@ -57,7 +57,7 @@ def forward(cal: Calibration, omega_b_radps, f_b_mps2) -> Corrected:
 
 
 def correct(cal: Calibration, gyro_radps, accel_mps2) -> Corrected:
-    """Seed 000 eq. 1-2 inverted: calibrated rate and specific force from the sensor outputs (SI, body axes)."""
+    """[SEED000] eq. 1-2 inverted: calibrated rate and specific force from the sensor outputs (SI, body axes)."""
     yg, ya = _as3(gyro_radps, "gyro_radps"), _as3(accel_mps2, "accel_mps2")
     if yg.shape != ya.shape:
         raise ValueError(f"gyro {yg.shape} and accel {ya.shape} arrays must have the same shape")

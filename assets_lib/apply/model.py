@@ -1,7 +1,7 @@
 """A calibration ready to apply: the sensor error model of docs/design.md with each term's value, standard error
 and the record it came from, built from one calibration record or assembled from a device's records at a date.
 
-Model (docs/design.md "Sensor error model", seed 000 eq. 1-2)::
+Model (docs/design.md "Sensor error model", [SEED000] eq. 1-2)::
 
     gyro:  y_g = diag(K_g) (I + E_g) w + b_g + G f + n_g
     accel: y_a = diag(K_a) (I + E_a) f + b_a + K2 * f**2 + sum_{j!=i} Kc[i, j] f_i f_j + n_a

@@ -157,7 +157,7 @@ STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value"
 
 
 def static_repeatability(runs: pd.DataFrame, *, confidence: float = 0.95) -> pd.DataFrame:
-    """Seed 000 eq. 23 over power-cycled static runs: per channel the bias repeatability (std of the turn-on
+    """[SEED000] eq. 23 over power-cycled static runs: per channel the bias repeatability (std of the turn-on
     biases, absolute, with the noise-corrected value) and the repeatability of the N and B terms (relative std)."""
     rows = []
     for ch, g in runs.groupby("channel", sort=True):

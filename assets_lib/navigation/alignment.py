@@ -1,6 +1,6 @@
 """Stationary (analytic, coarse) alignment and its error closed forms.
 
-Seed 004 step (2)(1)c: with gravity and earth rate known in the navigation frame and measured in the body frame,
+[SEED004] step (2)(1)c: with gravity and earth rate known in the navigation frame and measured in the body frame,
 C_b^n = [g^n, w_ie^n, g^n x w_ie^n]^T^-1 [g^b, w_ie^b, g^b x w_ie^b]^T (here with the specific force f = -g,
 ENU: f^n = [0, 0, g], w_ie^n = Omega [0, cos L, sin L]), orthonormalized with gravity first (TRIAD).
 
@@ -30,7 +30,7 @@ def _triad(v1: np.ndarray, v2: np.ndarray) -> np.ndarray:
 
 
 def analytic_alignment(f_b_mps2, omega_b_radps, latitude_deg: float, gravity_mps2: float) -> np.ndarray:
-    """Seed 004 analytic alignment: C_b^n (ENU) from mean specific force and angular rate in body axes (..., 3).
+    """[SEED004] analytic alignment: C_b^n (ENU) from mean specific force and angular rate in body axes (..., 3).
 
     The seed's vector triple (g, w_ie, g x w_ie) in both frames, orthonormalized with gravity first (TRIAD):
     levelling uses the accelerometers only, the heading the gyros' horizontal projection."""

@@ -2,7 +2,7 @@
 comparison, the errors left uncorrected (the coefficients themselves), propagated into
 
 (a) stationary alignment errors: level (accelerometer horizontal error / g) and heading (gyro east error /
-    (Omega cos L)), closed forms of ``alignment`` checked against seed 004's analytic alignment;
+    (Omega cos L)), closed forms of ``alignment`` checked against [SEED004]'s analytic alignment;
 (b) free-inertial position and attitude drift after given times (default 1 min, 10 min, 1 h), by strapdown
     integration (``strapdown``) of the simulator's own profiles: ``static_long`` (at rest, level) and
     ``quick_rate`` (the rate-table motion, then at rest), at the record's site latitude.
@@ -162,7 +162,7 @@ def drift(cal: Calibration, profile: Profile, times_s=DEFAULT_TIMES_S) -> DriftR
 
 @dataclass(frozen=True)
 class AlignmentBudget:
-    """Stationary alignment errors [rad] (level = RSS of both tilts), closed form and numerical (seed 004)."""
+    """Stationary alignment errors [rad] (level = RSS of both tilts), closed form and numerical ([SEED004])."""
 
     level_calibrated_rad: float
     level_uncalibrated_rad: float

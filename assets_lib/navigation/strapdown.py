@@ -1,5 +1,5 @@
-"""Free-inertial strapdown navigation in the local-level ENU frame (seed 002 "捷联惯导算法": attitude, velocity and
-position updates; seed 004 step (2)a: velocity equation with earth rate, transport rate and gravity; position
+"""Free-inertial strapdown navigation in the local-level ENU frame ([SEED002] "捷联惯导算法": attitude, velocity and
+position updates; [SEED004] step (2)a: velocity equation with earth rate, transport rate and gravity; position
 from the position-matrix rates L' = v_N / (R_M + h), lambda' = v_E / ((R_N + h) cos L)).
 
 Vectorized over a batch of cases (the same true motion with different sensor errors), so an error budget is one
@@ -9,7 +9,7 @@ integration. Per step dt, with body increments from the rate and specific force 
     v_{k+1} = v_k + dt (C_{k+1/2} f_b + g^n - (2 omega_ie^n + omega_en^n) x v_k),
               C_{k+1/2} = Exp(-omega_in^n dt/2) C_k Exp(omega_b dt/2)
     L, lambda from v_N, v_E as above (trapezoidal); height held at the site's (the vertical channel of a free inertial system
-    diverges and is always aided: seed 004 "高度通道发散, 要使用外界高度信息对高度通道进行阻尼").
+    diverges and is always aided: [SEED004] "高度通道发散, 要使用外界高度信息对高度通道进行阻尼").
 
 Earth: WGS-84 radii of curvature, earth rate ``EARTH_RATE_RADPS`` and normal gravity (``assets_lib.sim.earth``),
 so a sensor with no error at rest stays at rest. Position and attitude errors of a case are taken against the

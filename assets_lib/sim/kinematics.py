@@ -1,6 +1,6 @@
 """Turntable kinematics of a test plan: body orientation, angular rate and specific force at any time.
 
-A rate step turns the IMU about the table axis: C_b^l(t) = R(a, r (t - t_k)) C_k (seed 000 eq. 3-5).
+A rate step turns the IMU about the table axis: C_b^l(t) = R(a, r (t - t_k)) C_k ([SEED000] eq. 3-5).
 Between steps with the same mount the table rate ramps linearly; a change of mount (multi-position tests,
 a new rate axis) is made as ramp-down, a smooth rotation (raised-cosine angle profile), ramp-up, one third
 of the gap each. ``consistent_plan_orientations`` builds the step-start orientations that make a plan
@@ -265,7 +265,7 @@ class BodyInputs:
 
 
 def body_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float) -> BodyInputs:
-    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l (seed 000 eq. 3-5, 14-16); memoised
+    """omega_b = C_b^l^T (omega_table^l + omega_ie^l), f_b = C_b^l^T f^l ([SEED000] eq. 3-5, 14-16); memoised
     for identical requests inside :func:`kinematics_cache`."""
     key = None
     if _CACHE is not None:

@@ -2,7 +2,7 @@
 
 A template step names the mount by where each body axis points (``{"x": "N", "y": "W", "z": "U"}``), optional
 body rotations (``[["x", 45.0]]``), the table rate, and a duration (or a number of whole ``revolutions``,
-seed 000's full-revolution method). Expansion lays the steps on a time line with ``transition_s`` between
+[SEED000]'s full-revolution method). Expansion lays the steps on a time line with ``transition_s`` between
 them and fills the step-start orientations from the kinematics (``kinematics.consistent_plan_orientations``).
 """
 

@@ -1,7 +1,7 @@
 """Digital twin of the calibration experiment: writes runs in the raw-log contract with known truth.
 
 The sensor is a chain of composable effects applied to the true body-frame inputs from the plan's
-kinematics (``kinematics.body_inputs``): the deterministic error model of docs/design.md (seed 000 eq. 1-2),
+kinematics (``kinematics.body_inputs``): the deterministic error model of docs/design.md ([SEED000] eq. 1-2),
 Allan noise (IEEE 952 Annex C), then any extra effect (saturation, a disturbed plateau, temperature, latency,
 nonlinearity ...), then count quantization at write time. New effects implement :class:`SensorEffect` and plug
 into ``simulate_run(effects=[...])`` without changing anything here. Everything is seeded and deterministic.
@@ -259,7 +259,7 @@ def _site_values(site) -> tuple[float, float, dict]:
 
 
 def true_inputs(plan, t_s: np.ndarray, latitude_deg: float, gravity_mps2: float, table_effects=()) -> tuple[BodyInputs, TableMotion]:
-    """Body inputs of the *true* table motion at true times ``t_s``: the plan's kinematics (seed 000 eq. 3-5)
+    """Body inputs of the *true* table motion at true times ``t_s``: the plan's kinematics ([SEED000] eq. 3-5)
     perturbed by table-stage effects (rate error, wobble), then omega_b = C^T (omega_l + omega_ie), f_b = C^T f^l."""
     tr = trajectory(plan, t_s)
     m = TableMotion(tr.t_s, tr.c_b2l, tr.omega_motion_level_radps, tr.table_angle_rad, tr.table_rate_radps,

@@ -1,6 +1,6 @@
 """The base twin: the device model fitted from the device's own runs, and replicates driven by recorded inputs.
 
-Sensor model of docs/design.md (seed 000 eq. 1-2): gyro y = M_g omega + b + G f, accel y = M_a f + b + K2 f^2 +
+Sensor model of docs/design.md ([SEED000] eq. 1-2): gyro y = M_g omega + b + G f, accel y = M_a f + b + K2 f^2 +
 f (Kc f); noise from the IEEE 952 Annex C terms. Every coefficient comes from the library fits of the device's
 own runs (``fit_gyro_rate`` rows for M_g, ``fit_gyro_static`` for G, ``fit_accel_multiposition`` for M_a, K2,
 Kc), per power cycle, the bias per run (weighted mean of the run's plateau residuals), the noise of each channel

@@ -79,8 +79,8 @@ def plateaus(key: str, inputs) -> StageOutput:
 @stage("gyro_rate_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
        applies_to=("rate",))
 def gyro_rate_fit(key: str, inputs) -> StageOutput:
-    """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus (seed 003 eq. 3,
-    seed 000 eq. 6-13); saturated or wild plateaus excluded automatically and reported."""
+    """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus ([SEED003] eq. 3,
+    [SEED000] eq. 6-13); saturated or wild plateaus excluded automatically and reported."""
     fit = fit_gyro_rate(inputs.table("plateaus", "plateaus"))
     coef = fit.coefficient_table()
     resid = fit.residual_table()
@@ -95,8 +95,8 @@ def gyro_rate_fit(key: str, inputs) -> StageOutput:
 @stage("accel_multiposition_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
        applies_to=("multiposition", "tumble"))
 def accel_multiposition_fit(key: str, inputs) -> StageOutput:
-    """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule (seed 000 eq.
-    21-22, seed 003), unobservable terms reported as such; gyro biases from the static positions (eq. 17-20)."""
+    """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule ([SEED000] eq.
+    21-22, [SEED003]), unobservable terms reported as such; gyro biases from the static positions (eq. 17-20)."""
     p = inputs.table("plateaus", "plateaus")
     acc = fit_accel_multiposition(p)
     gyr = fit_gyro_static(p)

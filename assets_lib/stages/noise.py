@@ -20,7 +20,7 @@ CI_LEVEL = 0.95
 @stage("allan_deviation", level="capture", group="noise", code_version="1", upstream=["ingested_run"],
        applies_to=("static",))
 def allan_deviation(key: str, inputs) -> StageOutput:
-    """Overlapping Allan deviation (seed 002 eq. 4) per channel with chi-square intervals, and the IEEE 952
+    """Overlapping Allan deviation ([SEED002] eq. 4) per channel with chi-square intervals, and the IEEE 952
     Annex C fit (Q, N, B, K, R with intervals; unsupported terms as upper bounds) beside the slope readings."""
     imu = inputs.table("ingested_run", "imu")
     rate_hz = float(inputs.meta("ingested_run").get("sample_rate_hz") or 1.0 / np.median(np.diff(imu.time_s)))

@@ -1,5 +1,5 @@
 """Stage ``repeatability``: per device, bias and scale-factor repeatability over its power-cycled runs
-(seed 000 eq. 23, seed 003)."""
+([SEED000] eq. 23, [SEED003])."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ def repeatability(device: str, inputs) -> StageOutput | None:
     """Turn-on to turn-on spread of each bias and scale factor of one device, with the number of runs used."""
     frames = [inputs.table(a, "coefficients", key=k)
               for a in ("gyro_rate_fit", "accel_multiposition_fit") for k in inputs.keys_of(a)]
-    # power-cycled static runs: turn-on bias and noise-term repeatability (seed 000 eq. 23)
+    # power-cycled static runs: turn-on bias and noise-term repeatability ([SEED000] eq. 23)
     static = [inputs.table("allan_deviation", "static_terms", key=k) for k in inputs.keys_of("allan_deviation")
               if inputs.has_table("allan_deviation", "static_terms", key=k)]
     if not frames and len(static) < 2:

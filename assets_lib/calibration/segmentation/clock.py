@@ -164,7 +164,7 @@ def _clip_to_rails(r_tab: np.ndarray, g_proj: np.ndarray, shortfall: float = 0.9
     """The table rate clipped where the gyro saturates ([SEED003]: align the table rate with the gyro's output).
 
     A gyro whose measuring range is below the plan's rates reads flat at its rail on the fast plateaus; against the
-    unclipped table rate the correlation peak then shifts (on seed 003's repetitive sequence a consumer gyro at
+    unclipped table rate the correlation peak then shifts (on [SEED003]'s repetitive sequence a consumer gyro at
     +-250 deg/s on the +-400 deg/s plan aligned 2989 s off; on the quick rate plan 0.1-1.2 ms off instead of
     0.05-0.1 ms). When the projected gyro spans less than ``shortfall`` of the table's range on a side, the
     reference is clipped at the gyro's extreme on that side, so both signals saturate alike; otherwise it is

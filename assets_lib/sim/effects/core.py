@@ -13,7 +13,7 @@ from assets_lib.sim.noise import allan_noise
 
 @dataclass(frozen=True)
 class ErrorModel:
-    """Deterministic model of docs/design.md (seed 000 eq. 1-2): scale, misalignment, bias, g-sensitivity, K2, Kc."""
+    """Deterministic model of docs/design.md ([SEED000] eq. 1-2): scale, misalignment, bias, g-sensitivity, K2, Kc."""
 
     name: str = "error_model"
 
