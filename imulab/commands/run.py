@@ -22,7 +22,9 @@ from imulab.commands import workspace_options
 @click.command("run")
 @workspace_options("Landing folder of the lab archive. Default: <data>/landing, simulated first if empty.")
 @click.option("--verbose", is_flag=True, help="Show Dagster's event log.")
-def command(landing, store, data_dir, dagster_home, verbose):
+@click.option("--skip-stage", "skip", multiple=True, metavar="STAGE",
+              help="Leave this stage (and what reads it) out of the run, e.g. the costly sim_to_real; repeatable.")
+def command(landing, store, data_dir, dagster_home, verbose, skip):
     """Ingest and calibrate every completed run of a lab archive through Dagster, then print a summary.
 
     With no --archive, the embedded default (a simulated lab archive) is written to <data>/landing first.
@@ -51,6 +53,8 @@ def command(landing, store, data_dir, dagster_home, verbose):
     from assets_lib.stages.registry import STAGES
     from assets_lib.store import LandingArchive, VersionedStore
 
+    STAGES = _without(STAGES, skip)
+
     archive = LandingArchive(landing)
     complete, waiting = archive.complete_runs(), archive.incomplete_runs()
     if not complete and not waiting:
@@ -78,7 +82,7 @@ def command(landing, store, data_dir, dagster_home, verbose):
             from pipelines import reprocess
             from pipelines.definitions import build_definitions
 
-            defs = build_definitions(str(landing), str(store))
+            defs = build_definitions(str(landing), str(store), stages=STAGES)
             summary = reprocess.run_plan(defs, instance, plan, vstore, quiet=not verbose)
             plan = plan_reprocess(STAGES, vstore, archive, cap, dev)  # what the store holds now
     for job, run_id, ok in summary.runs:
@@ -91,6 +95,23 @@ def command(landing, store, data_dir, dagster_home, verbose):
                f"IMULAB_STORE={store} dagster dev -w workspace.yaml)")
     failed = print_summary(plan, summary, vstore, waiting, echo=click.echo)
     sys.exit(1 if failed else 0)
+
+
+def _without(stages, skip):
+    """The stage graph less the ``skip`` stages and every stage that reads one of them (transitively)."""
+    if not skip:
+        return stages
+    from assets_lib.stages.engine import StageGraph
+
+    unknown = sorted(set(skip) - {s.name for s in stages})
+    if unknown:
+        raise click.BadParameter(f"unknown stage(s) {unknown}; stages: {[s.name for s in stages]}",
+                                 param_hint="--skip-stage")
+    dropped = set(skip)
+    for s in stages:  # dependency order: upstreams are decided first
+        if any(u in dropped for u in s.upstream):
+            dropped.add(s.name)
+    return StageGraph([s for s in stages if s.name not in dropped])
 
 
 def record_warnings(vstore) -> list[str]:
