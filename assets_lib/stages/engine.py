@@ -101,6 +101,18 @@ class StageGraph:
         keep = set(names)
         return StageGraph(s for s in self._specs if s.name in keep)
 
+    def without(self, names: Iterable[str]) -> StageGraph:
+        """The graph less ``names`` and every stage that reads one of them (transitively); KeyError names unknown
+        stages."""
+        dropped = set(names)
+        unknown = sorted(dropped - set(self._by_name))
+        if unknown:
+            raise KeyError(f"unknown stage(s) {unknown}; stages: {self.names}")
+        for s in self._specs:  # dependency order: upstreams are decided first
+            if any(u in dropped for u in s.upstream):
+                dropped.add(s.name)
+        return self.subset(n for n in self.names if n not in dropped)
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # Versions

@@ -53,7 +53,10 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
     from assets_lib.stages.registry import STAGES
     from assets_lib.store import LandingArchive, VersionedStore
 
-    STAGES = _without(STAGES, skip)
+    try:
+        STAGES = STAGES.without(skip)
+    except KeyError as e:
+        raise click.BadParameter(str(e.args[0]), param_hint="--skip-stage") from None
 
     archive = LandingArchive(landing)
     complete, waiting = archive.complete_runs(), archive.incomplete_runs()
@@ -95,23 +98,6 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
                f"IMULAB_STORE={store} dagster dev -w workspace.yaml)")
     failed = print_summary(plan, summary, vstore, waiting, echo=click.echo)
     sys.exit(1 if failed else 0)
-
-
-def _without(stages, skip):
-    """The stage graph less the ``skip`` stages and every stage that reads one of them (transitively)."""
-    if not skip:
-        return stages
-    from assets_lib.stages.engine import StageGraph
-
-    unknown = sorted(set(skip) - {s.name for s in stages})
-    if unknown:
-        raise click.BadParameter(f"unknown stage(s) {unknown}; stages: {[s.name for s in stages]}",
-                                 param_hint="--skip-stage")
-    dropped = set(skip)
-    for s in stages:  # dependency order: upstreams are decided first
-        if any(u in dropped for u in s.upstream):
-            dropped.add(s.name)
-    return StageGraph([s for s in stages if s.name not in dropped])
 
 
 def record_warnings(vstore) -> list[str]:
