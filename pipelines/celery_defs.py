@@ -22,7 +22,7 @@ import os
 
 from dagster_celery import celery_executor
 
-from pipelines.definitions import build_definitions
+from pipelines.location import build_definitions
 
 
 def celery_config() -> dict:

@@ -43,7 +43,7 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
     from assets_lib.stages.registry import STAGES
     from assets_lib.store import VersionedStore
     from pipelines import reprocess
-    from pipelines.definitions import build_definitions
+    from pipelines.location import build_definitions
     from pipelines.launch import open_instance, register_landed_runs
     from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
