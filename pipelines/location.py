@@ -16,7 +16,7 @@ from assets_lib.stages.engine import StageGraph
 from assets_lib.stages.registry import STAGES
 from pipelines import assets, checks, jobs
 from pipelines.defs import calibration, diagnosis, fleet, noise, records, schedules, sensors
-from pipelines.resources import LabArchive, ParquetStore
+from pipelines.resources import LabArchive, ParquetStore, WorkspaceLock
 
 DATA_DIR = os.environ.get("IMULAB_DATA", "imulab_data")
 #: the checks of the stages (each names its stage's asset; a graph without that stage has no such check)
@@ -30,8 +30,9 @@ def default_paths() -> tuple[str, str]:
 
 
 def resources(landing_dir: str, store_dir: str, stages: StageGraph = STAGES) -> dict:
-    """``archive`` and ``store`` for the assets; ``stages`` (the graph itself) for launchers reading the location."""
-    return {"archive": LabArchive(landing_dir=landing_dir), "store": ParquetStore(root=store_dir), "stages": stages}
+    """``archive``, ``store`` and ``workspace_lock`` for the assets; ``stages`` (the graph itself) for launchers reading the location."""
+    return {"archive": LabArchive(landing_dir=landing_dir), "store": ParquetStore(root=store_dir),
+            "workspace_lock": WorkspaceLock(store_dir=store_dir), "stages": stages}
 
 
 def _checks_of(graph: StageGraph) -> list:
