@@ -56,7 +56,7 @@ class WorkspaceLock(dg.ConfigurableResource):
         from pipelines.instance import PID_TAG
         from pipelines.workspace import acquire_run_lock
 
-        run = context.dagster_run
+        run = context.run
         if not self.enabled or (run is not None and run.tags.get(PID_TAG) == str(os.getpid())):
             yield self
             return

@@ -212,3 +212,35 @@ def test_reprocess_waits_for_the_run_lock(workspace):
     assert rc == 0, out
     assert "another imulab run is using" in out and "waiting for it to finish" in out
     assert "rewrote" in out and (data / "store" / "ingested_run").is_dir()
+
+
+@pytest.mark.slow
+def test_a_run_launched_outside_imulab_holds_the_workspace_lock(tmp_path, monkeypatch):
+    """A run the Dagster daemon or the UI launches carries no imulab pid tag: its ``WorkspaceLock`` resource takes
+    the run lock, so it cannot write the store while ``imulab run`` / ``imulab reprocess`` hold it (told not to
+    wait, it fails naming the holder); once free, it runs. A run imulab executes in its own process (tagged with
+    its pid) never waits on the lock its process holds. Before, such runs ignored the lock."""
+    from pipelines.jobs import CAPTURES_JOB, range_tags
+    from pipelines.launch import open_instance, process_tags, register_landed_runs
+    from pipelines.resources import LabArchive
+    from pipelines.workspace import run_lock
+    from prod_helpers import QUIET, toy_definitions, toy_graph, write_small_archive
+
+    landing, store, home = tmp_path / "landing", tmp_path / "store", tmp_path / "home"
+    keys = write_small_archive(landing, runs_per_device=1)
+    defs = toy_definitions(landing, store, toy_graph())
+    job = defs.resolve_job_def(CAPTURES_JOB)
+    monkeypatch.setenv("IMULAB_LOCK_TIMEOUT_S", "0")
+    with open_instance(home) as inst:
+        register_landed_runs(inst, LabArchive(landing_dir=str(landing)))
+        tags = range_tags(keys[0], keys[-1])
+        with run_lock(home, store):
+            res = job.execute_in_process(instance=inst, tags=tags, run_config=QUIET, raise_on_error=False)
+            assert not res.success
+            assert any("another imulab run is using" in f"{e.message} {e.event_specific_data}" for e in res.all_events)
+            assert not (store / "ingested_run").exists()
+            mine = job.execute_in_process(instance=inst, tags={**tags, **process_tags()}, run_config=QUIET,
+                                          raise_on_error=False)
+            assert mine.success  # imulab's own in-process run: its process holds the lock already
+        again = job.execute_in_process(instance=inst, tags=tags, run_config=QUIET, raise_on_error=False)
+        assert again.success
