@@ -66,3 +66,19 @@ def load(path: Path, fingerprint: str | None = None) -> StageGraph | None:
         s.__dict__["code_version"] = d["code_version"]  # the cached_property's slot: no source digest recomputed
         specs.append(s)
     return StageGraph(specs)
+
+
+def prime(graph: StageGraph, path: Path, fingerprint: str | None = None) -> int:
+    """Give the stages of the real ``graph`` their code versions from the cache at ``path`` when it was saved from
+    the current sources (the same sources give the same digests), so they are not parsed again; returns how many
+    stages were primed."""
+    cached = load(path, fingerprint)
+    if cached is None:
+        return 0
+    n = 0
+    for s in graph:
+        if s.name in cached and "code_version" not in s.__dict__ \
+                and cached[s.name].declared_version == s.declared_version:
+            s.__dict__["code_version"] = cached[s.name].code_version
+            n += 1
+    return n

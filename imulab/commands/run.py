@@ -72,12 +72,14 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
             click.echo(f"everything up to date ({plan.up_to_date} partitions checked in {time.time() - t0:.1f} s): "
                        "nothing launched")
             _finish(plan, NOTHING_LAUNCHED, vstore, waiting, store, landing, home, t0)
+    from assets_lib.stages import graph_cache
     from assets_lib.stages.registry import STAGES as ALL_STAGES
     from pipelines.instance import fail_abandoned_runs
     from pipelines.launch import LaunchSummary, open_instance, register_landed_runs
     from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
 
+    graph_cache.prime(ALL_STAGES, store / GRAPH_CACHE)  # when current, spares parsing every stage's sources
     stages = _without(ALL_STAGES, skip)
     note_archive(store, landing)  # lets `imulab verify` find the archive from the store
     with open_instance(home) as instance:
