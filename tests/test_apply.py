@@ -237,6 +237,33 @@ def test_bias_drift_terms_from_noise_rows():
     assert "not included" in none.note and not np.any(none.accel.b)
 
 
+def test_turn_on_repeatability_from_the_devices_power_cycles():
+    """Records of several power cycles: the device calibration carries the noise-corrected bias repeatability
+    ([SEED000] eq. 23) of each triad, and data from another power cycle get it added to their uncertainty."""
+    from assets_lib.calibration.repeatability import bias_repeatability
+
+    base = example_device("TAC-Z01", "tactical", 5)
+    recs = [fitted_record(base.for_power_cycle(pc, 5), "quick_24_position", f"pc{pc}-pos24", 700 + pc,
+                          T0 + timedelta(days=pc), power_cycle_index=pc, **SHORT)[0] for pc in range(4)]
+    assert assemble(recs[:2], T0 + timedelta(days=9)).turn_on_repeatability is None  # 2 cycles: not stated
+    cal = assemble(recs, T0 + timedelta(days=9))
+    rep = cal.turn_on_repeatability
+    assert rep["accel_power_cycles"] == [0, 1, 2, 3] and rep["gyro_power_cycles"] == [0, 1, 2, 3]
+    rows = lambda r: {c["axis"]: c for c in r["content"]["coefficients"]  # noqa: E731
+                      if c["sensor"] == "accel" and c["coefficient"] == "bias"}
+    want = bias_repeatability([rows(r)["y"]["value"] for r in recs], [rows(r)["y"]["stderr"] for r in recs])
+    assert rep["accel"][1] == pytest.approx(want.std_noise_corrected if np.isfinite(want.std_noise_corrected)
+                                            else want.std)
+    # the tactical truth's turn-on spread is 0.3 mg: the 4-cycle estimate is of that order
+    assert 0.2 * 0.3e-3 * 9.80665 < np.sqrt(np.mean(np.square(rep["accel"]))) < 3 * 0.3e-3 * 9.80665
+    back = calibration_from_json(json.loads(json.dumps(cal.to_json())))
+    assert back.turn_on_repeatability == rep and back.identity_sha256 == cal.identity_sha256
+    y = np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 9.8]])
+    same = correction_stderr(cal, *y, ApplySpan(10.0, 100.0))
+    other = correction_stderr(cal, *y, ApplySpan(10.0, 100.0, power_cycle_changed=True))
+    np.testing.assert_allclose(other.accel_mps2[0], np.hypot(same.accel_mps2[0], rep["accel"]), rtol=2e-3)
+
+
 def test_assemble_takes_each_group_from_the_newest_record_holding_it(device):
     truth = device["truth"]
     rate2, _, _ = fitted_record(truth, "quick_rate", "c-rate", 2, T0 + timedelta(days=7))
@@ -290,6 +317,8 @@ def test_imulab_apply_on_files(device, tmp_path):
     assert meta["records"][0]["store_version"] == "v0001" and meta["records"][0]["run_id"] == "a-pos24"
     assert meta["records"][0]["record_schema_version"] == "1.0" and meta["record_schema_versions"] == ["1.0"]
     assert meta["input"]["sha256"]["imu.parquet"] and meta["missing_groups"] == ["gyro_scale_misalignment", "noise"]
+    assert "bias drift between runs not included" in meta["bias_drift"]  # no static run's noise terms
+    assert not any("power cycle" in w for w in meta["warnings"])  # same power cycle as the record
     got = pd.read_parquet(out)
     want = correct_frame(calibration_from_record(device["records"][1]), ingest_run(run_dir).imu)
     np.testing.assert_array_equal(got[G + A].to_numpy(), want[G + A].to_numpy())
@@ -329,3 +358,13 @@ def test_imulab_apply_on_files(device, tmp_path):
     r = runner.invoke(main, ["apply", str(rec), str(lone / "si.parquet"), "--device", "TAC-Z01", "--out",
                              str(tmp_path / "z.parquet")])
     assert r.exit_code == 0, r.output
+
+
+def test_apply_warns_about_data_from_another_power_cycle(device, tmp_path):
+    from assets_lib.apply.files import apply_file
+
+    run_dir = write_run(simulate_run(device["truth"], "quick_24_position", "e-pos24", seed=23, power_cycle_index=1,
+                                     plan_kwargs={"duration_scale": 0.2}), tmp_path / "landing")
+    _, meta = apply_file(calibration_from_record(device["records"][1]), run_dir, tmp_path / "o.parquet")
+    w = [x for x in meta["warnings"] if "power cycle" in x]
+    assert len(w) == 1 and "power cycle 1" in w[0] and "[0]" in w[0] and "unknown" in w[0], meta["warnings"]

@@ -132,7 +132,7 @@ def sensitivities(cal: Calibration, gyro_radps, accel_mps2) -> Sensitivities:
 def drift_of(cal: Calibration) -> BiasDrift:
     """The calibration's bias-drift terms (``assets_lib.apply.drift.bias_drift``) from its noise rows."""
     src = next((r["run_id"] for r in cal.records if r.get("test_kind") == "static"), "")
-    return bias_drift(cal.noise, src)
+    return bias_drift(cal.noise, src, cal.turn_on_repeatability)
 
 
 def drift_stderr(cal: Calibration, gyro_radps, accel_mps2, span: ApplySpan | None = None) -> Corrected:

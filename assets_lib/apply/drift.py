@@ -95,17 +95,17 @@ class BiasDrift:
         return var
 
 
-def _zero() -> TriadDrift:
-    return TriadDrift(np.zeros(3), np.zeros(3), np.full(3, np.nan))
-
-
-def bias_drift(noise_rows, source: str = "") -> BiasDrift:
+def bias_drift(noise_rows, source: str = "", turn_on: dict | None = None) -> BiasDrift:
     """The drift terms held by a calibration's noise rows (``noise_table`` layout: channel, parameter, method,
-    value, ci_hi, is_upper_bound; SI values)."""
+    value, ci_hi, is_upper_bound; SI values) and its turn-on repeatability (``{"gyro": [3], "accel": [3]}`` SI,
+    ``assets_lib.apply.model.turn_on_repeatability``; missing: unknown)."""
     rows = list(noise_rows or ())
+    rep = {s: np.asarray((turn_on or {}).get(s, [np.nan] * 3), dtype=float) for s in CHANNELS}
     if not rows:
-        return BiasDrift(_zero(), _zero(), "", (), "no noise terms (static run) in the calibration: bias drift "
-                         "between runs not included in the stated uncertainty")
+        return BiasDrift(TriadDrift(np.zeros(3), np.zeros(3), rep["gyro"]),
+                         TriadDrift(np.zeros(3), np.zeros(3), rep["accel"]), "", (),
+                         "no noise terms (static run) in the calibration: bias drift between runs not included in "
+                         "the stated uncertainty")
     out = {"gyro": {"B": np.zeros(3), "K": np.zeros(3)}, "accel": {"B": np.zeros(3), "K": np.zeros(3)}}
     left = []
     for r in rows:
@@ -121,7 +121,7 @@ def bias_drift(noise_rows, source: str = "") -> BiasDrift:
                                 f"{'%.3g' % float(hi) if hi is not None else 'n/a'} {r.get('unit', '')})".rstrip())
                 else:
                     out[sensor][r["parameter"]][i] = float(v)
-    mk = lambda s: TriadDrift(out[s]["B"], out[s]["K"], np.full(3, np.nan))  # noqa: E731
+    mk = lambda s: TriadDrift(out[s]["B"], out[s]["K"], rep[s])  # noqa: E731
     note = ("bias drift between runs from the noise terms of " + (source or "the calibration")
             + (("; not identified, left out: " + ", ".join(left)) if left else ""))
     return BiasDrift(mk("gyro"), mk("accel"), source, tuple(left), note)
