@@ -34,7 +34,13 @@ from assets_lib.sim.simulator import example_device, simulate_run, write_run
 from imulab.cli import main
 from raw_schemas.readers import ingest_frames, ingest_run
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
-from tests.record_factory import T0, fitted_record, make_record, plateaus_of, write_store_records
+from tests.record_factory import (
+    T0,
+    fitted_record,
+    make_record,
+    plateaus_of,
+    write_store_records,
+)
 
 G = [f"gyro_{a}_radps" for a in "xyz"]
 A = [f"accel_{a}_mps2" for a in "xyz"]
@@ -213,7 +219,7 @@ def test_record_applied_to_other_runs_of_the_device_gives_unit_variance_z_scores
 
 def test_bias_drift_terms_from_noise_rows():
     """Identified Allan terms enter, upper bounds are named and left out; no noise rows: no drift, said so."""
-    ch = lambda s, a: f"{s}_{a}_{'radps' if s == 'gyro' else 'mps2'}"  # noqa: E731
+    ch = lambda s, a: f"{s}_{a}_{'radps' if s == 'gyro' else 'mps2'}"
     rows = [{"channel": ch("accel", a), "parameter": "B", "method": "fit", "value": 2e-4, "is_upper_bound": False}
             for a in "xyz"]
     rows += [{"channel": ch("accel", "x"), "parameter": "K", "method": "fit", "value": None, "ci_hi": 3e-5,
@@ -249,7 +255,7 @@ def test_turn_on_repeatability_from_the_devices_power_cycles():
     cal = assemble(recs, T0 + timedelta(days=9))
     rep = cal.turn_on_repeatability
     assert rep["accel_power_cycles"] == [0, 1, 2, 3] and rep["gyro_power_cycles"] == [0, 1, 2, 3]
-    rows = lambda r: {c["axis"]: c for c in r["content"]["coefficients"]  # noqa: E731
+    rows = lambda r: {c["axis"]: c for c in r["content"]["coefficients"]
                       if c["sensor"] == "accel" and c["coefficient"] == "bias"}
     want = bias_repeatability([rows(r)["y"]["value"] for r in recs], [rows(r)["y"]["stderr"] for r in recs])
     assert rep["accel"][1] == pytest.approx(want.std_noise_corrected if np.isfinite(want.std_noise_corrected)

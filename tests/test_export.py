@@ -149,7 +149,7 @@ def test_openvins_intrinsics_reproduce_the_model(cal, model):
 
 def _c_arrays(text):
     out = {}
-    for name, body in re.findall(r"static const double (\w+)\[3\](?:\[3\])? = \{(.*?)\};", text, flags=re.S):
+    for name, body in re.findall(r"static const double (\w+)\[3\](?:\[3\])? = \{(.*?)\};", text, flags=re.DOTALL):
         out[name.replace("IMULAB_", "")] = np.array([float(v) for v in re.findall(r"[-+0-9.eE]+", body)]).reshape(
             (3, 3) if body.count("{") else (3,))
     out["ACC_ITERATIONS"] = int(re.search(r"#define IMULAB_ACC_ITERATIONS (\d+)", text).group(1))
@@ -248,10 +248,13 @@ def test_imulab_ferraris_record_of_imucal_session_calibrates_alike_in_imucal_and
     from imucal.management import load_calibration_info
 
     from assets_lib.apply import calibration_from_record, correct_frame
-    from assets_lib.calibration.tablefree_session import calibrate_tablefree, coefficient_table
+    from assets_lib.calibration.tablefree_session import (
+        calibrate_tablefree,
+        coefficient_table,
+    )
+    from raw_schemas.importers import RunMeta, import_run
     from raw_schemas.readers import ingest_run
     from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
-    from raw_schemas.importers import RunMeta, import_run
 
     d = shared_data / "imucal_example"
     landing = import_run("imucal", [d / "annotated_session.csv"], tmp_path / "land", RunMeta("bmi160", "ferraris1"),

@@ -165,6 +165,7 @@ def test_certificate_shows_the_budget_and_verify_recomputes_it():
     as hashed JSON; certificate_problems (imulab verify CERT.html) recomputes every printed value from it."""
     import json
 
+    from assets_lib.records.canonical import content_sha256
     from assets_lib.records.certificate import (
         DEVICE_CALIBRATION_ID,
         NAV_PLOT,
@@ -172,8 +173,6 @@ def test_certificate_shows_the_budget_and_verify_recomputes_it():
         certificate_problems,
         parse_certificate,
     )
-
-    from assets_lib.records.canonical import content_sha256
 
     def full(rec, run):  # the factory's records lack the plan counts the certificate prints: filled in, re-hashed
         plan = rec["content"]["test_conditions"]["plan"]
@@ -204,7 +203,7 @@ def test_certificate_shows_the_budget_and_verify_recomputes_it():
     doc = cert.device_calibration
     edited = json.loads(json.dumps(doc))
     edited["terms"][0]["stderr"] *= 0.1
-    swap = lambda d: page.replace(json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=False),  # noqa: E731
+    swap = lambda d: page.replace(json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=False),
                                   json.dumps(d, sort_keys=True, separators=(",", ":"), ensure_ascii=False))
     assert swap(edited) != page
     assert any("device calibration cannot be read" in p for p in certificate_problems(swap(edited))[1])

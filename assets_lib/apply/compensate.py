@@ -169,5 +169,19 @@ def correction_stderr(cal: Calibration, gyro_radps, accel_mps2, span: ApplySpan 
     return Corrected(np.hypot(c.gyro_radps, d.gyro_radps), np.hypot(c.accel_mps2, d.accel_mps2))
 
 
-__all__ = ["ACCEL_COLUMNS", "GYRO_COLUMNS", "ApplySpan", "Corrected", "Sensitivities", "correct", "correct_frame",
-           "correction_stderr", "drift_of", "drift_stderr", "forward", "perturbed", "sensitivities", "FAMILY_FIELDS"]
+__all__ = [
+    "ACCEL_COLUMNS",
+    "FAMILY_FIELDS",
+    "GYRO_COLUMNS",
+    "ApplySpan",
+    "Corrected",
+    "Sensitivities",
+    "correct",
+    "correct_frame",
+    "correction_stderr",
+    "drift_of",
+    "drift_stderr",
+    "forward",
+    "perturbed",
+    "sensitivities",
+]

@@ -117,11 +117,12 @@ def bias_drift(noise_rows, source: str = "", turn_on: dict | None = None) -> Bia
                 v = r.get("value")
                 if r.get("is_upper_bound") or v is None or not math.isfinite(float(v)):
                     hi = r.get("ci_hi")
-                    left.append(f"{r['channel']} {r['parameter']} (upper bound "
-                                f"{'%.3g' % float(hi) if hi is not None else 'n/a'} {r.get('unit', '')})".rstrip())
+                    bound = f"{float(hi):.3g}" if hi is not None else "n/a"
+                    left.append(f"{r['channel']} {r['parameter']} (upper bound {bound} {r.get('unit', '')}".rstrip()
+                                + ")")
                 else:
                     out[sensor][r["parameter"]][i] = float(v)
-    mk = lambda s: TriadDrift(out[s]["B"], out[s]["K"], rep[s])  # noqa: E731
+    mk = lambda s: TriadDrift(out[s]["B"], out[s]["K"], rep[s])
     note = ("bias drift between runs from the noise terms of " + (source or "the calibration")
             + (("; not identified, left out: " + ", ".join(left)) if left else ""))
     return BiasDrift(mk("gyro"), mk("accel"), source, tuple(left), note)

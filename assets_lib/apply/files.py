@@ -26,7 +26,12 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from assets_lib.apply.compensate import ACCEL_COLUMNS, GYRO_COLUMNS, correct_frame, drift_of
+from assets_lib.apply.compensate import (
+    ACCEL_COLUMNS,
+    GYRO_COLUMNS,
+    correct_frame,
+    drift_of,
+)
 from assets_lib.apply.model import Calibration, CalibrationError
 from raw_schemas.errors import RawDataError
 from raw_schemas.manifest import load_manifest
@@ -136,12 +141,13 @@ def power_cycle_warnings(cal: Calibration, data: ImuInput) -> list[str]:
     if data.power_cycle_index is None or not cycles or data.power_cycle_index in cycles:
         return []
     rep = cal.turn_on_repeatability
-    size = ("; turn-on bias repeatability (1 sigma) gyro " + ", ".join(f"{v:.3g}" for v in rep["gyro"]) + " rad/s, "
-            "accel " + ", ".join(f"{v:.3g}" for v in rep["accel"]) + " m/s^2"
-            if rep and "gyro" in rep and "accel" in rep else
-            "; the turn-on bias repeatability is unknown (records of fewer than 3 power cycles)")
-    return [f"the data are from power cycle {data.power_cycle_index}, the biases applied from power cycle(s) "
-            f"{cycles}: they differ by the device's turn-on repeatability{size}"]
+    if rep and "gyro" in rep and "accel" in rep:
+        size = ("; turn-on bias repeatability (1 sigma) gyro " + ", ".join(f"{v:.3g}" for v in rep["gyro"])
+                + " rad/s, accel " + ", ".join(f"{v:.3g}" for v in rep["accel"]) + " m/s^2")
+    else:
+        size = "; the turn-on bias repeatability is unknown (records of fewer than 3 power cycles)"
+    return [(f"the data are from power cycle {data.power_cycle_index}, the biases applied from power cycle(s) "
+             f"{cycles}: they differ by the device's turn-on repeatability{size}")]
 
 
 def calibration_metadata(cal: Calibration, data: ImuInput, warnings: list[str], imulab_version: str = "") -> dict:

@@ -103,7 +103,7 @@ class Triad:
     cross_coupling_stderr: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     @classmethod
-    def nominal(cls) -> "Triad":
+    def nominal(cls) -> Triad:
         z3, z33 = np.zeros(3), np.zeros((3, 3))
         return cls(np.ones(3), z33.copy(), z3.copy(), z3.copy(), z33.copy(), z3.copy())
 

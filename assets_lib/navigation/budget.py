@@ -263,7 +263,7 @@ def rest_drift_closed_form(cal: Calibration, latitude_deg: float, times_s=DEFAUL
     dw = np.concatenate([(y.gyro_radps - w_b)[None, 0], s.gyro[:, 0]])  # (cases, 3) E N U
     df = np.concatenate([(y.accel_mps2 - f_b)[None, 0], s.accel[:, 0]])
     t = np.asarray(times_s, float)[None, :]
-    c = lambda v: np.asarray(v)[:, None]  # noqa: E731
+    c = lambda v: np.asarray(v)[:, None]
     north = position_from_accel_bias_m(c(df[:, 1]), t, latitude_deg, "north") \
         + position_from_gyro_bias_m(c(dw[:, 0]), t, latitude_deg, "east")
     east = position_from_accel_bias_m(c(df[:, 0]), t, latitude_deg, "east") \
@@ -273,7 +273,7 @@ def rest_drift_closed_form(cal: Calibration, latitude_deg: float, times_s=DEFAUL
     tilt_n = tilt_from_gyro_bias_rad(c(dw[:, 1]), t, latitude_deg, "north") \
         + tilt_from_accel_bias_rad(c(df[:, 0]), t, latitude_deg, "east")
     head = heading_from_gyro_bias_rad(c(dw[:, 2]), t)
-    rss = lambda x: np.sqrt((x[1:] ** 2).sum(axis=0))  # noqa: E731
+    rss = lambda x: np.sqrt((x[1:] ** 2).sum(axis=0))
     return DriftResult("at rest (closed forms)", t[0], np.hypot(rss(north), rss(east)), np.hypot(north[0], east[0]),
                        np.hypot(rss(tilt_e), rss(tilt_n)), np.hypot(tilt_e[0], tilt_n[0]), rss(head), np.abs(head[0]))
 

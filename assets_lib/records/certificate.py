@@ -189,8 +189,8 @@ def navigation_cells(device_calibration) -> tuple[dict[str, str], list[str], obj
 def device_calibration_problems(record: dict, doc) -> tuple[object | None, list[str]]:
     """(Calibration, problems) of the device calibration embedded beside a record: its own hash, its date (the
     record's start), its device, and every term it takes from this record equal to the record's value. Terms from
-    the device's other records are checked against them by ``imulab verify`` with the store (their sha256 are
-    listed in the calibration)."""
+    the device's earlier records are named by run id and record sha256 (in the calibration and on the page); they
+    are not checked against those records here (the certificate embeds only its own record)."""
     from assets_lib.apply.model import CalibrationError, calibration_from_json, to_utc
 
     try:

@@ -9,6 +9,7 @@ time, orchestrator run id and bytes kept), so a rerun changes nothing and a new 
 
 from __future__ import annotations
 
+from assets_lib.navigation.budget import certificate_calibration
 from assets_lib.records import (
     PLOT_SOURCES,
     build_device_records,
@@ -19,7 +20,6 @@ from assets_lib.records import (
     software_info,
     utc_now_iso,
 )
-from assets_lib.navigation.budget import certificate_calibration
 from assets_lib.stages.spec import StageOutput, stage
 from assets_lib.store.keys import capture_key, split_capture_key
 
