@@ -237,6 +237,7 @@ def test_bias_drift_terms_from_noise_rows():
     np.testing.assert_allclose(v[0], 2 * np.log(2) / np.pi * 4e-8)
     np.testing.assert_allclose(v[1], (2 * np.log(2) + np.log(60)) / np.pi * 4e-8)
     np.testing.assert_allclose(d.variance("gyro", span, 2)[:, 1], 1e-12 * np.array([100.0, 100 + 5 / 3]))
+    np.testing.assert_allclose(d.variance("accel", None, 2), 2 * np.log(2) / np.pi * 4e-8)  # whole runs: the floor
     with pytest.raises(ValueError, match="turn-on bias repeatability is unknown"):
         d.variance("accel", ApplySpan(5.0, 300.0, power_cycle_changed=True), 1)
     none = bias_drift([], "")

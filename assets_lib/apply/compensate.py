@@ -143,7 +143,6 @@ def drift_stderr(cal: Calibration, gyro_radps, accel_mps2, span: ApplySpan | Non
     the Allan floor (2 ln2 / pi) B^2 of [IEEE952] C.3."""
     yg, ya = _as3(gyro_radps, "gyro_radps"), _as3(accel_mps2, "accel_mps2")
     n = len(yg)
-    span = span if span is not None else ApplySpan(window_s=1.0, run_s=1.0)
     drift = drift_of(cal)
     vg, va = np.zeros_like(yg), np.zeros_like(ya)
     for sensor in ("gyro", "accel"):

@@ -80,9 +80,12 @@ class BiasDrift:
     not_included: tuple[str, ...] = field(default=())  # 'accel_x_mps2 K (upper bound 1.7e-05 m/s^2/sqrt(s))'
     note: str = ""
 
-    def variance(self, sensor: str, span: ApplySpan, n: int) -> np.ndarray:
-        """(n, 3) bias-drift variance of each row and axis (module docstring)."""
+    def variance(self, sensor: str, span: ApplySpan | None, n: int) -> np.ndarray:
+        """(n, 3) bias-drift variance of each row and axis (module docstring); ``span`` None: every row the mean of
+        a whole run, the Allan floor (2 ln2 / pi) B^2 only."""
         d: TriadDrift = getattr(self, sensor)
+        if span is None:
+            return np.broadcast_to((LN2x2 / math.pi) * d.b**2, (n, 3)).copy()
         T, t = span.arrays(n)
         flick = (d.b**2 / math.pi)[None, :] * (LN2x2 + np.log(span.run_s / T))[:, None]
         rw = (d.k**2)[None, :] * (t + T / 3.0)[:, None]
