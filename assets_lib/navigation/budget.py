@@ -404,7 +404,7 @@ CERTIFICATE_REST_STEP_S = 2.0
 
 
 def certificate_budget(cal: Calibration, times_s=DEFAULT_TIMES_S) -> NavigationBudget:
-    """The certificate's budget: alignment closed forms and the static_long strapdown in 2 s steps (~0.3 s; the
+    """The certificate's budget: alignment closed forms and the static_long strapdown in 2 s steps (the
     motion profile's 20 Hz strapdown, ~10 s per calibration, stays in ``navigation_budget``)."""
     return navigation_budget(cal, times_s, profiles=("static",), rest_step_s=CERTIFICATE_REST_STEP_S)
 
