@@ -546,8 +546,7 @@ def _pooled(designs: list) -> TFDesign:
 
 def diagnose_tablefree(frames, device_id: str, replicates: int = 20, seed: int = 0, workers: int | None = None,
                        aug_replicates: int | None = None, progress=None):
-    """Diagnosis of a device whose runs are all table-free; returns a ``diagnose.Diagnosis``."""
-    from assets_lib.simreal.diagnose import Diagnosis
+    """Diagnosis of a device whose runs are all table-free (the fields of ``diagnose.Diagnosis``)."""
     from assets_lib.simreal.replicates import default_workers
     from assets_lib.sim.earth import site_gravity_mps2
 
@@ -615,6 +614,9 @@ def diagnose_tablefree(frames, device_id: str, replicates: int = 20, seed: int =
         for c in grp:
             if c.family not in fams:
                 fams.append(c.family)
+        # without a temperature log, a warm-up or a ramp cannot be told from a temperature bias (effects.md sec. 2)
+        if {"warmup_bias", "bias_ramp"} & set(fams) and "temperature_bias" in not_testable:
+            fams.append("temperature_bias")
         # the earth rate's vertical part, Omega sin(lat) f / g, is linear in f like a g-sensitivity (heading unknown,
         # effects.md sec. 2): ambiguous unless the interval excludes every G the earth rate can mimic (<= Omega / g)
         if "g_sensitivity" in fams and not (np.isfinite(e["ci_lo"]) and e["ci_lo"] > EARTH_RATE_RADPS / 9.78):
@@ -688,11 +690,24 @@ def diagnose_tablefree(frames, device_id: str, replicates: int = 20, seed: int =
     tm["total"] = time.time() - t0
     plots = {"views": vt, "views_after": vt_after, "E": (E_base, E_model, floor), "effects": eff_out,
              "tablefree": {"reals": reals, "reps": reps, "scales": scales, "vt": vt}}
-    diag = Diagnosis(report, twin, aug, vt, vt_after, tm, plots)
+    diag = TFDiagnosis(report, twin, aug, vt, vt_after, tm, plots)
     import base64
 
     plots["extra_png"] = {f"table-free views of run {k}": base64.b64encode(v).decode() for k, v in figures(diag).items()}
     return diag
+
+
+@dataclass
+class TFDiagnosis:
+    """Same fields as ``diagnose.Diagnosis`` (the report writers take either)."""
+
+    report: dict
+    twin: TFTwin
+    augmented: TFTwin
+    views: ViewTable
+    views_after: ViewTable | None
+    timings_s: dict
+    plots: dict
 
 
 def figures(diag) -> dict:
@@ -726,14 +741,20 @@ def figures(diag) -> dict:
         ax.legend(fontsize=7)
         ax = axs[0, 1]
         f = np.array([real.signals["f"][a:b].mean(0) for a, b in zip(real.pose_starts, real.pose_ends)])
+        k = np.arange(len(real.a_y))
         for j in range(3):
-            ax.plot(f[:, j], (real.s_y[:, j] - real.s_y[:, j].mean()) * 180 / np.pi, "o", ms=3, color=f"C{j}",
-                    label=f"gyro {'xyz'[j]} vs f_{'xyz'[j]}")
+            off = (j - 1) * 0.3  # deg/s between channels
+            ax.plot(k, (real.s_y[:, j] - real.s_y[:, j].mean()) * 180 / np.pi + off, "o-", ms=3, lw=0.6,
+                    color=f"C{j}", label=f"gyro {'xyz'[j]} (offset {off:+.1f})")
             sd = np.nanmean([np.std(rp.s_y[:, j]) for rp in reps]) * 180 / np.pi
-            ax.axhspan(-1.96 * sd, 1.96 * sd, color=f"C{j}", alpha=0.08)
-        ax.set_xlabel("pose specific force on the same axis [m/s^2]")
+            ax.axhspan(off - 1.96 * sd, off + 1.96 * sd, color=f"C{j}", alpha=0.12)
+            for e in diag.report["effects"]:
+                if e["family"] == "g_sensitivity" and e["channel"] == REPORT_CHANNELS[j]:
+                    pr = f @ np.asarray(e["coefficients"])
+                    ax.plot(k, (pr - pr.mean()) * 180 / np.pi + off, "x", color="k", ms=4)
+        ax.set_xlabel("static pose (time order)")
         ax.set_ylabel("gyro pose mean - mean [deg/s]")
-        ax.set_title("static gyro residual against specific force (bands: twin 95 %)", fontsize=9)
+        ax.set_title("static gyro residual (bands: twin 95 %; x: fitted g-sensitivity G f)", fontsize=9)
         ax.legend(fontsize=7)
         ax = axs[1, 0]
         if real.p_y.size:
@@ -748,6 +769,10 @@ def figures(diag) -> dict:
             ax.set_xlabel("peak rate of the rotation [deg/s]")
             ax.set_ylabel("integration residual [deg]")
             ax.legend(fontsize=7)
+        else:
+            ax.text(0.5, 0.5, "no integration residual: the Ferraris closed form\nis exactly determined by its three rotations",
+                    ha="center", va="center", transform=ax.transAxes, fontsize=8)
+            ax.set_axis_off()
         ax.set_title("gyro integration residual per rotation", fontsize=9)
         ax = axs[1, 1]
         vt = diag.views.table
