@@ -141,3 +141,27 @@ def test_xsens_session_gap_is_gyro_g_sensitivity(shared_data, tmp_path):
     assert rep["gap"]["detected"] and rep["effects"]
     e = rep["effects"][0]
     assert e["family"] == "g_sensitivity" and 5e-5 < e["magnitude"] < 1e-3
+
+
+def test_sim_to_real_stage_runs_the_tablefree_experiment(shared_data, tmp_path):
+    """The ``sim_to_real`` stage on a device with only hand-moved runs (imucal's Ferraris session): the table-free
+    experiment through the stage engine, its report and plots stored (the stage was not applicable before)."""
+    from assets_lib.stages.engine import compute_partition
+    from assets_lib.stages.registry import STAGES
+    from assets_lib.store import LandingArchive, VersionedStore
+
+    land = tmp_path / "land"
+    import_run("imucal", [shared_data / "imucal_example" / "annotated_session.csv"], land, RunMeta("bmi160", "ferraris1"),
+               {"sample_rate_hz": "204.8", "accel_lsb": str(1 / 2048), "gyro_lsb": str(1 / 16.4),
+                "gravity_mps2": "9.81"})
+    store = VersionedStore(tmp_path / "store")
+    archive = LandingArchive(land)
+    for key in archive.complete_runs():
+        assert compute_partition(STAGES, STAGES["ingested_run"], key, store, archive).done
+    o = compute_partition(STAGES, STAGES["sim_to_real"], "bmi160", store, archive)
+    assert o.status == "written", o.reason
+    d = store.version_dir("sim_to_real", "bmi160", o.version)
+    rep = json.loads((d / "bmi160.json").read_text())
+    _check_report(rep)
+    assert rep["verdict"] == store.read_meta("sim_to_real", "bmi160")["verdict"]
+    assert rep["replicates"]["base"] == 5
