@@ -80,11 +80,14 @@ def _noise_sd(grade: str, device_id: str, seed: int, channel: int, fs: float = 1
 
 
 def generate(root: Path, families, scales, repeats: int, seed: int) -> list[dict]:
+    """``scales``: one list for every family, or {family: list}."""
     base = clear_cases()
     out = []
     wh.Hidden = _RecordingHidden  # the generator builds its effect by this name
     for fam in families:
-        for si, s in enumerate(scales):
+        grid = scales[fam] if isinstance(scales, dict) else scales
+        for s in grid:
+            si = int(round(1000 * s))  # device id from the scale itself: grids can be extended and resumed
             for rep in range(repeats):
                 c0 = base[fam]
                 c = {k: v for k, v in c0.items() if k != "device_id"}
@@ -92,7 +95,7 @@ def generate(root: Path, families, scales, repeats: int, seed: int) -> list[dict
                 c["magnitude"] = c0["magnitude"] * s
                 c["category"] = "power"
                 c["scale"] = s
-                c["device_id"] = f"PC-{fam[:14]}-{si:02d}-{rep}"
+                c["device_id"] = f"PC-{fam[:14]}-s{si:04d}-{rep}"
                 truth_p = root / "truth" / f"{c['device_id']}.json"
                 if truth_p.exists():
                     out.append(json.loads(truth_p.read_text()))
@@ -143,7 +146,16 @@ def _level50(x: np.ndarray, p: np.ndarray) -> float | None:
         if p[i] < 0.5 <= p[i + 1]:
             lx = np.log(x[i]) + (0.5 - p[i]) / (p[i + 1] - p[i]) * (np.log(x[i + 1]) - np.log(x[i]))
             return float(np.exp(lx))
-    return float(x[0]) if len(p) and p[0] >= 0.5 else None
+    return None  # not bracketed by the grid: reported as "< smallest x" or "> largest x" (``_fmt_level``)
+
+
+def _fmt_level(v, pts, key) -> str:
+    if v is not None:
+        return f"{v:.3g}"
+    x = [r["rms_over_noise"] for r in pts]
+    if pts and pts[int(np.argmin(x))][key] >= 0.5:
+        return f"< {min(x):.3g} (every grid point >= 50 %)"
+    return f"> {max(x):.3g} (no grid point reaches 50 %)"
 
 
 def score(root: Path, truths) -> dict:
@@ -206,8 +218,9 @@ def write_results(res: dict, out: Path, meta: dict) -> None:
                          f"{r['p_detect']:.2f} | {r['p_attribute']:.2f} | {v} |")
     lines += ["", "| family | RMS/noise at 50 % detection | at 50 % attribution |", "|---|---|---|"]
     for fam, c in res["curves"].items():
-        a, b = c["rms_over_noise_at_50pct_detection"], c["rms_over_noise_at_50pct_attribution"]
-        lines.append(f"| {fam} | {'n/a' if a is None else f'{a:.3g}'} | {'n/a' if b is None else f'{b:.3g}'} |")
+        pts = c["points"]
+        lines.append(f"| {fam} | {_fmt_level(c['rms_over_noise_at_50pct_detection'], pts, 'p_detect')} | "
+                     f"{_fmt_level(c['rms_over_noise_at_50pct_attribution'], pts, 'p_attribute')} |")
     (out / "power_curves.md").write_text("\n".join(lines) + "\n")
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for i, (fam, c) in enumerate(res["curves"].items()):
@@ -230,6 +243,8 @@ def main(argv=None):
     ap.add_argument("--families", default="temperature_bias,scale_factor_asymmetry,lever_arm",
                     help="comma list of the generator's library families, or 'all'")
     ap.add_argument("--scales", default="0.03,0.08,0.2,0.5", help="multiples of the generator's clear magnitude")
+    ap.add_argument("--family-scales", action="append", metavar="FAMILY=S1,S2,...",
+                    help="a family's own grid (e.g. lever_arm=0.001,0.003,0.01,0.03: its signal is strong)")
     ap.add_argument("--repeats", type=int, default=1, help="devices (seeds) per grid point")
     ap.add_argument("--replicates", type=int, default=4)
     ap.add_argument("--seed", type=int, default=11)
@@ -241,11 +256,23 @@ def main(argv=None):
     unknown = [f for f in fams if f not in clear_cases()]
     if unknown:
         ap.error(f"--families: unknown {unknown}; the generator has {sorted(clear_cases())}")
-    scales = [float(s) for s in a.scales.split(",")]
+    scales = {f: [float(s) for s in a.scales.split(",")] for f in fams}
+    for spec in a.family_scales or []:
+        f, _, grid = spec.partition("=")
+        if f not in scales:
+            ap.error(f"--family-scales {spec}: {f} is not among --families")
+        scales[f] = [float(x) for x in grid.split(",")]
     root = Path(a.out)
     t0 = time.time()
+    had = {p.name for p in (root / "truth").glob("PC-*.json")} if (root / "truth").is_dir() else set()
     truths = generate(root, fams, scales, a.repeats, a.seed)
-    t_gen = time.time() - t0
+    gen_file = root / "generate_s.json"
+    gen = json.loads(gen_file.read_text()) if gen_file.exists() else {}
+    new_ = [t["device_id"] for t in truths if f"{t['device_id']}.json" not in had]
+    if new_:
+        gen.update({d: (time.time() - t0) / len(new_) for d in new_})
+        gen_file.write_text(json.dumps(gen))
+    t_gen = float(sum(gen.get(t["device_id"], 0.0) for t in truths))
     print(f"generated {len(truths)} devices in {t_gen:.0f} s", flush=True)
     diagnose(root, truths, a.replicates, 0, a.workers)
     res = score(root, truths)
@@ -254,7 +281,7 @@ def main(argv=None):
 
     meta = {"command": "python benchmarks/power_curves.py " + " ".join(argv if argv is not None else sys.argv[1:]),
             "replicates": a.replicates, "repeats": a.repeats, "workers": a.workers or 2, "families": fams,
-            "scales": scales, "generate_s": t_gen, "wall_s": time.time() - t0,
+            "scales": scales, "generate_s": t_gen, "wall_s": t_gen + float(sum(walls)),  # resumable: summed per device
             "mean_device_s": float(np.mean(walls)) if walls else float("nan"),
             "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
             "code": hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:12]}
