@@ -709,6 +709,11 @@ class TFDiagnosis:
     timings_s: dict
     plots: dict
 
+    def twin_file(self) -> dict:
+        """``<device>.twin.json``: the augmented table-free twin (format ``imulab.simreal.tablefree_model/1``: per run
+        the fitted model, its noise and the accepted effects; the recorded inputs stay with the session)."""
+        return self.augmented.to_json()
+
 
 def figures(diag) -> dict:
     """Table-free plots (PNG bytes): static-pose residuals, gyro pose means against specific force, rotation
