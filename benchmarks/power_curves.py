@@ -38,9 +38,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import withheld_effects as wh  # noqa: E402  (the benchmark's generator, reused unchanged)
+import withheld_effects as wh
 
-from assets_lib.sim.simulator import example_device  # noqa: E402
+from assets_lib.sim.simulator import example_device
 
 #: effect RMS per (device id, run seed) -> (sum of squares per channel (6,), samples): filled inside the generator
 _RECORD: dict = {}
@@ -87,7 +87,7 @@ def generate(root: Path, families, scales, repeats: int, seed: int) -> list[dict
     for fam in families:
         grid = scales[fam] if isinstance(scales, dict) else scales
         for s in grid:
-            si = int(round(1000 * s))  # device id from the scale itself: grids can be extended and resumed
+            si = round(1000 * s)  # device id from the scale itself: grids can be extended and resumed
             for rep in range(repeats):
                 c0 = base[fam]
                 c = {k: v for k, v in c0.items() if k != "device_id"}
@@ -202,12 +202,12 @@ def write_results(res: dict, out: Path, meta: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "power_curves.json").write_text(json.dumps({**meta, **res}, indent=1, default=float) + "\n")
     lines = ["# Power curves of the sim-to-real diagnosis (benchmarks/power_curves.py)", "",
-             f"Command: `{meta['command']}`  ", f"Wall time {meta['wall_s']:.0f} s for {len(res['points'])} devices "
-             f"({meta['replicates']} replicates each, {meta['workers']} workers; mean "
-             f"{meta['mean_device_s']:.0f} s per device), {meta['date']}.", "",
-             "x = RMS of what the sealed effect adds to its largest channel over the runs carrying it, over the "
-             "white-noise sd of one sample of that channel. Detected: verdict not `no_gap`; attributed: first "
-             "accepted effect is the true family.", "",
+             f"Command: `{meta['command']}`  ",
+             (f"Wall time {meta['wall_s']:.0f} s for {len(res['points'])} devices ({meta['replicates']} replicates "
+              f"each, {meta['workers']} workers; mean {meta['mean_device_s']:.0f} s per device), {meta['date']}."), "",
+             ("x = RMS of what the sealed effect adds to its largest channel over the runs carrying it, over the "
+              "white-noise sd of one sample of that channel. Detected: verdict not `no_gap`; attributed: first "
+              "accepted effect is the true family."), "",
              "| family | scale | channel | effect RMS / noise | n | P(detect) | P(attribute) | verdicts |",
              "|---|---|---|---|---|---|---|---|"]
     for fam, c in res["curves"].items():

@@ -69,7 +69,7 @@ def main(argv=None):
             write_atomic(out / f"{dev}.json", json.dumps(rep, indent=1) + "\n")
             p = plots(d)
             (figs / f"simreal_real_{dev}_where.png").write_bytes(base64.b64decode(p["where"]))
-            for run, png in figures(d).items():
+            for png in figures(d).values():  # one run per imported session
                 (figs / f"simreal_real_{dev}_views.png").write_bytes(png)
             eff = ", ".join(f"{e['family']}/{e['channel']} {e['magnitude']:.3g} [{e['ci_lo']:.3g}, {e['ci_hi']:.3g}] "
                             f"{e['unit']}" for e in rep["effects"]) or "-"

@@ -17,7 +17,10 @@ import numpy as np
 import pytest
 
 from assets_lib.sim.hand_poses import simulate_hand_session
-from assets_lib.simreal.tablefree_diagnose import diagnose_tablefree, load_tablefree_frames
+from assets_lib.simreal.tablefree_diagnose import (
+    diagnose_tablefree,
+    load_tablefree_frames,
+)
 from raw_schemas.importers import RunMeta, import_run
 
 REPO = Path(__file__).resolve().parents[1]

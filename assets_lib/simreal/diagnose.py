@@ -54,7 +54,10 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
                     aug_replicates: int | None = None, progress=None, experiment: DeviceExperiment | None = None
                     ) -> Diagnosis:
     if experiment is None and landing is not None:  # hand-moved sessions: the table-free experiment
-        from assets_lib.simreal.tablefree_diagnose import diagnose_tablefree, load_tablefree_frames
+        from assets_lib.simreal.tablefree_diagnose import (
+            diagnose_tablefree,
+            load_tablefree_frames,
+        )
 
         frames = load_tablefree_frames(landing, device_id)
         if frames is not None:

@@ -60,7 +60,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from assets_lib.simreal.tablefree_twin import (
-    CHANNELS6,
     TFTwin,
     realise,
     recorded_inputs,
@@ -547,8 +546,8 @@ def _pooled(designs: list) -> TFDesign:
 def diagnose_tablefree(frames, device_id: str, replicates: int = 20, seed: int = 0, workers: int | None = None,
                        aug_replicates: int | None = None, progress=None):
     """Diagnosis of a device whose runs are all table-free (the fields of ``diagnose.Diagnosis``)."""
-    from assets_lib.simreal.replicates import default_workers
     from assets_lib.sim.earth import site_gravity_mps2
+    from assets_lib.simreal.replicates import default_workers
 
     say = progress or (lambda msg: None)
     workers = default_workers() if workers is None else workers
@@ -683,7 +682,7 @@ def diagnose_tablefree(frames, device_id: str, replicates: int = 20, seed: int =
         "selection_first_step": [{"family": s.cand.family, "channel": REPORT_CHANNELS[s.cand.channel],
                                   "delta_lpd": s.delta_lpd, "gate": gates.get(s.cand.group, GATE),
                                   "folds_positive": s.n_pos, "folds": s.folds} for s in first[:15]],
-        "fit": {r.run_id: {"method": r.method, "n_poses": int(len(r.a_y)), "n_rotations": int(r.p_y.shape[0]),
+        "fit": {r.run_id: {"method": r.method, "n_poses": len(r.a_y), "n_rotations": int(r.p_y.shape[0]),
                            **{k: v for k, v in r.diagnostics.items() if isinstance(v, (int, float))}} for r in reals},
         "timings_s": tm,
     }

@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 
 from assets_lib.calibration.ferraris import STATIC_SECTIONS
-from assets_lib.calibration.gyro_integration import _Segments, _T
+from assets_lib.calibration.gyro_integration import _T, _Segments
 from assets_lib.calibration.tablefree import apply_accel_params
 from assets_lib.calibration.tablefree_session import (
     POSE_SAMPLES,
