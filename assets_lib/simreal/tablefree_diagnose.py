@@ -14,7 +14,7 @@ Tedaldi accelerometer and gyro fits; a constant per gyro channel on ``S``, whose
 ``static_norm_residual`` and ``static_gyro_residual``, per-rotation ``rotation_residual`` (angle), the
 signature projections ``residual_vs_*`` of every candidate below (whitened, nuisance-projected), the fit scatter
 ``fit_chi2_*`` (stochastic), ``allan_band_tau*`` of the longest static interval (stochastic) and its
-``residual_spectrum_peak``.
+``residual_spectrum_peak``; BH q over the views [BENJAMINI1995].
 
 **Which**: candidate signatures, each linear in its coefficients, acting on the calibrated signals (a gyro
 candidate adds d_w_j(t), an accelerometer one d_f_j(t)); on ``A`` rows the first-order change u_i . d_f, on
@@ -34,7 +34,7 @@ scale_factor_nonlinearity    gyro w_j^2, w_j^3 (P); accel f_j^2 (A)           ro
 scale_factor_asymmetry       gyro |w_j| (P)                                   rotations
 ============================ ================================================ ==================================
 
-Greedy forward selection on blocked cross-validation: ``K_FOLDS`` contiguous blocks of poses in time (a table-free
+Greedy forward selection on blocked cross-validation [ROBERTS2017]: ``K_FOLDS`` contiguous blocks of poses in time (a table-free
 session is a single run, so leave-one-run-out is impossible; a block holds its poses, their gyro means and the
 rotations that leave them). Accept when the held-out gain exceeds the larger of 2 ln 1000 and the sim-vs-sim
 level mean + 5 sd of the first-step score over the base replicates, positive in >= K-1 folds. Ambiguity: ties
