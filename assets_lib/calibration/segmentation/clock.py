@@ -28,7 +28,9 @@ class ClockAlignment:
     then a least-squares (Gauss-Newton) delay fit. ``offset_stderr_s`` is the Cramer-Rao bound of a delay in white
     noise, sigma_e / sqrt(sum (alpha dr/dt)^2) with sigma_e the robust residual scatter: a lower bound that leaves
     out table-log interpolation and time-stamp rounding (sub-microsecond here). ``clock_drift_ppm`` compares the
-    offsets of the two record halves (a clock-rate error is otherwise indistinguishable from a scale factor).
+    offsets of the two record halves, each at its information centroid (where the table rate changes; see
+    ``_delay_crlb_centroid``), not at the half's middle (a clock-rate error is otherwise indistinguishable from a
+    scale factor).
     Method ``step_centres`` (table log without rotation rate): median of table-step minus quiet-interval centres;
     ``correlation_peak`` then holds the fraction of steps agreeing within two IMU samples.
     """
@@ -134,17 +136,30 @@ def _delay_inliers(t_imu, g_proj, rr) -> np.ndarray:
 
 def _delay_crlb(t_imu, g_proj, t_tab, r_tab, offset, dt) -> float:
     """Cramer-Rao bound of a delay in white noise (Kay, Fundamentals of Statistical Signal Processing I, eq. 3.18)."""
+    return _delay_crlb_centroid(t_imu, g_proj, t_tab, r_tab, offset)[0]
+
+
+def _delay_crlb_centroid(t_imu, g_proj, t_tab, r_tab, offset) -> tuple[float, float]:
+    """(Cramer-Rao bound of the delay, the time the delay estimate refers to).
+
+    The least-squares delay weighs sample i by its Fisher information w_i = (alpha dr/dt)^2 ([KAY1993] eq. 3.18),
+    so when the delay drifts, tau(t) = tau_c + d (t - t_c), the estimate is (to first order) the drifting delay at
+    the information centroid t_c = sum w_i t_i / sum w_i: on a rate plan the table's ramps, not the record's middle.
+    """
     rr = np.interp(t_imu + offset, t_tab, r_tab, left=np.nan, right=np.nan)
     m = _delay_inliers(t_imu, g_proj, rr)
     if m.sum() < 10:
-        return np.nan
+        return np.nan, np.nan
     a_mat = np.column_stack([rr[m], np.ones(m.sum())])
     coef, *_ = np.linalg.lstsq(a_mat, g_proj[m], rcond=None)
     e = g_proj[m] - a_mat @ coef
     sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
     deriv = np.gradient(rr[m], t_imu[m])
-    energy = np.sum((coef[0] * deriv) ** 2)
-    return float(sig / np.sqrt(energy)) if energy > 0 else np.nan
+    w = (coef[0] * deriv) ** 2
+    energy = np.sum(w)
+    if not energy > 0:
+        return np.nan, np.nan
+    return float(sig / np.sqrt(energy)), float(np.sum(w * t_imu[m]) / energy)
 
 
 def table_steps(table: pd.DataFrame) -> dict[int, tuple[float, float]]:
@@ -214,7 +229,10 @@ def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: Segmentat
                 if p < cfg.min_correlation:
                     break
                 o = _refine_delay(ti, gi, t_tab[tsel], r_tab[tsel], o)
-                halves.append((o, _delay_crlb(ti, gi, t_tab[tsel], r_tab[tsel], o, dt), 0.5 * (ti[0] + ti[-1])))
+                se_h, t_c = _delay_crlb_centroid(ti, gi, t_tab[tsel], r_tab[tsel], o)
+                if not np.isfinite(t_c):
+                    break
+                halves.append((o, se_h, t_c))  # each half's offset refers to its information centroid
             if len(halves) == 2:
                 (o1, s1, c1), (o2, s2, c2) = halves
                 drift = (o2 - o1) / (c2 - c1) * 1e6
