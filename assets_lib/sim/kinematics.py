@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -240,12 +240,13 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
         _CACHE.move_to_end(key)
         CACHE_STATS["hits"] += 1
         return hit
-    sub = _lookup(plan, pk, t)
-    if sub is not None:
+    tr = _lookup(plan, pk, t)
+    if tr is not None:  # kept under its own key too: the next request of these times is a plain hit
         CACHE_STATS["subset_hits"] += 1
-        return sub
-    CACHE_STATS["misses"] += 1
-    tr = _compute_trajectory(plan, t)
+    else:
+        CACHE_STATS["misses"] += 1
+        tr = _compute_trajectory(plan, t)
+    tr = replace(tr, t_s=t.copy())  # the caller's array stays writeable
     for a in (tr.t_s, tr.c_b2l, tr.omega_motion_level_radps, tr.table_angle_rad, tr.table_rate_radps, tr.step_index):
         a.flags.writeable = False
     _CACHE[key] = tr
