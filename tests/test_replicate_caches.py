@@ -62,9 +62,11 @@ def test_cache_keeps_callers_times_writeable():
     t = np.arange(0.0, 20.0, 0.02)
     with kinematics_cache():
         trajectory(PLAN, np.arange(0.0, 30.0, 0.01))
-        tr = trajectory(PLAN, t)  # served from the finer grid
-        tr2 = trajectory(PLAN, t)
-    assert tr2 is tr and t.flags.writeable and not tr.c_b2l.flags.writeable
+        tr1 = trajectory(PLAN, t)  # served from the finer grid
+        tr = trajectory(PLAN, t)  # asked again (the table log of every replicate): kept under its own key
+        tr3 = trajectory(PLAN, t)
+    assert tr3 is tr and t.flags.writeable and not tr.c_b2l.flags.writeable
+    np.testing.assert_array_equal(tr1.c_b2l, tr.c_b2l)
     ref = trajectory(PLAN, t)
     np.testing.assert_array_equal(tr.c_b2l, ref.c_b2l)
     np.testing.assert_array_equal(tr.table_angle_rad, ref.table_angle_rad)

@@ -174,6 +174,7 @@ def _compute_trajectory(plan, t_s: np.ndarray) -> Trajectory:
 _CACHE: "OrderedDict[tuple, Trajectory] | None" = None
 _CACHE_MAX = 64
 CACHE_STATS = {"hits": 0, "subset_hits": 0, "misses": 0}
+_SUBSET_SEEN: "OrderedDict[tuple, None]" = OrderedDict()
 
 
 def _plan_key(plan) -> str:
@@ -241,8 +242,13 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
         CACHE_STATS["hits"] += 1
         return hit
     tr = _lookup(plan, pk, t)
-    if tr is not None:  # kept under its own key too: the next request of these times is a plain hit
+    if tr is not None:
         CACHE_STATS["subset_hits"] += 1
+        if key not in _SUBSET_SEEN:  # kept under its own key from its second request on (a grid asked for again,
+            _SUBSET_SEEN[key] = None  # e.g. the table log in every replicate), not for one-off windows
+            while len(_SUBSET_SEEN) > 4 * _CACHE_MAX:
+                _SUBSET_SEEN.popitem(last=False)
+            return tr
     else:
         CACHE_STATS["misses"] += 1
         tr = _compute_trajectory(plan, t)

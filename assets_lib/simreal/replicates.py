@@ -4,6 +4,7 @@ Each replicate r of a device: every run simulated by ``twin.simulate_run_imu`` w
 processed by ``experiment.process_run`` (segmentation and library fits), then turned into a ``Design`` and its
 views. Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
 copy-on-write, never pickled); results depend only on (seed, r), so they are identical for any worker count.
+The plan kinematics and flicker spectral shapes are cached across replicates (bit-identical to computing them).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assets_lib.sim.kinematics import kinematics_cache
+from assets_lib.sim.noise import flicker_shape_cache
 from assets_lib.simreal.design import Design, build_design
 from assets_lib.simreal.experiment import process_run
 from assets_lib.simreal.twin import TwinModel, simulate_run_imu
@@ -83,7 +86,8 @@ def run_replicates(twin: TwinModel, runs, windows, rk, n: int, seed: int, worker
                    progress=None, key: str = "base") -> list[Replicate]:
     """``n`` replicates (indices 0..n-1) of ``twin``; ``progress(done, n)`` after each."""
     _STATE[key] = {"twin": twin, "runs": runs, "windows": windows, "rk": rk}
-    try:
-        return parallel_map(_worker, [(r, seed, key) for r in range(n)], workers, progress)
+    try:  # plan kinematics and flicker spectral shapes are the same in every replicate (bit-identical caches)
+        with kinematics_cache(), flicker_shape_cache():
+            return parallel_map(_worker, [(r, seed, key) for r in range(n)], workers, progress)
     finally:
         _STATE.pop(key, None)
