@@ -269,8 +269,9 @@ def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: Segmentat
             if len(halves) == 2:
                 (o1, s1, c1), (o2, s2, c2) = halves
                 d0 = (o2 - o1) / (c2 - c1)
+                drift, drift_se = d0 * 1e6, np.hypot(s1, s2) / (c2 - c1) * 1e6  # kept if the joint fit fails
                 d, d_se = _refine_delay_drift(t_imu, gp, t_tab, r_tab, off, d0)
-                if np.isfinite(d):
+                if np.isfinite(d) and np.isfinite(d_se):
                     drift, drift_se = d * 1e6, d_se * 1e6
             return ClockAlignment(off, se, "xcorr_table_rate_parabolic+ls", peak, drift, drift_se, int(t_imu.size))
     # fallback: step centres
