@@ -87,3 +87,27 @@ def test_parallel_map_matches_serial(recorded_alignment):
         _STATE.clear()
     for a, b in zip(serial, pooled):
         _same(a, b)
+
+
+def test_flicker_noise_arithmetic_unchanged():
+    """The spectrum is built without complex temporaries; the values are those of the plain expression, bit for bit
+    (the stored archive depends on them), with and without the shape cache."""
+    from scipy import fft as sp_fft
+
+    from assets_lib.sim.noise import FLICKER_SPAN_FACTOR, flicker_noise
+
+    for n, b in ((1001, 1e-5), (24001, 3e-3)):
+        m = sp_fft.next_fast_len(int(np.ceil(FLICKER_SPAN_FACTOR * n)), real=True)
+        f = np.fft.rfftfreq(m, d=1.0 / 100.0)
+        one = np.zeros_like(f)
+        one[1:] = b**2 / (np.pi * f[1:])
+        amp = np.sqrt(one * 100.0 * m / 4.0)
+        rng = np.random.default_rng(n)
+        spec = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+        if m % 2 == 0:
+            spec[-1] = spec[-1].real * np.sqrt(2.0)
+        ref = np.fft.irfft(spec, n=m)[:n]
+        np.testing.assert_array_equal(flicker_noise(n, 100.0, b, np.random.default_rng(n)), ref)
+        with flicker_shape_cache():
+            for _ in range(2):
+                np.testing.assert_array_equal(flicker_noise(n, 100.0, b, np.random.default_rng(n)), ref)
