@@ -184,7 +184,7 @@ def test_clock_drift_unbiased_with_honest_stderr(white_device):
     errs, zs = [], []
     for seed, eps in enumerate((2e-4, -2e-4) * 4):
         chain = sensor_chain([EFFECTS["timebase_error"](clock_rate_error=eps)])
-        run, ing = _ingested(white_device, "quick_rate", 100 + seed, table_clock_offset_s=TABLE_OFFSET_S, effects=chain)
+        _, ing = _ingested(white_device, "quick_rate", 100 + seed, table_clock_offset_s=TABLE_OFFSET_S, effects=chain)
         al = align_clocks(ing.manifest.plan, ing.imu, ing.table)
         truth = -1e6 * eps / (1 + eps)
         errs.append(al.clock_drift_ppm - truth)
@@ -198,7 +198,7 @@ def test_clock_drift_unbiased_with_honest_stderr(white_device):
 def test_segment_run_reuses_a_given_alignment(white_device, rate_run):
     """``clock_alignment=``: the run's own alignment gives the same table as aligning again; a replicate (same
     plan, time stamps and table log, other noise) with the recorded alignment keeps the recorded plateau windows."""
-    run, ing = rate_run
+    _, ing = rate_run
     al = align_clocks(ing.manifest.plan, ing.imu, ing.table)
     own = segment_run(ing.manifest, ing.imu, ing.table)
     given = segment_run(ing.manifest, ing.imu, ing.table, clock_alignment=al)

@@ -174,7 +174,7 @@ def _compute_trajectory(plan, t_s: np.ndarray) -> Trajectory:
 _CACHE: "OrderedDict[tuple, Trajectory] | None" = None
 _CACHE_MAX = 64
 CACHE_STATS = {"hits": 0, "subset_hits": 0, "misses": 0}
-_SUBSET_SEEN: "OrderedDict[tuple, None]" = OrderedDict()
+_SUBSET_SEEN: OrderedDict[tuple, None] = OrderedDict()
 
 
 def _plan_key(plan) -> str:
