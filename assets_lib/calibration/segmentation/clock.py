@@ -128,19 +128,41 @@ def _refine_delay_drift(t_imu, g_proj, t_tab, r_tab, offset, drift, iterations: 
     A delay held constant over a half misfits the ramps far from the half's centroid by alpha dr/dt d (t - t_c),
     tens of noise sigmas at 200 ppm, and the robust inlier test then drops them: the halves alone read the drift
     5-20 % high or low. Fitting the drift itself keeps every ramp (inliers re-selected each step, as in
-    ``_refine_delay``); standard error from the 2 x 2 information matrix ([KAY1993] eq. 3.18, vector form).
+    ``_refine_delay``; only the samples where the table rate changes, the others carry no delay information);
+    standard error from the 2 x 2 information matrix ([KAY1993] eq. 3.18, vector form).
     """
     x = t_imu - 0.5 * (t_imu[0] + t_imu[-1])
     tau = offset
+    # only samples where the table rate changes inform the delay (J = alpha dr/dt (1, t - t_m)): fit on those,
+    # widened by 3 samples on each side so that the ramps stay inside as the delay moves
+    rr = np.interp(t_imu + tau + drift * x, t_tab, r_tab, left=np.nan, right=np.nan)
+    act = np.isfinite(rr)
+    act[act] = np.gradient(rr[act], t_imu[act]) != 0
+    act = np.convolve(act, np.ones(7), mode="same") > 0
+    if act.sum() < 10:
+        return np.nan, np.nan
+    # gain and bias (alpha, beta) from the whole record, mostly its plateaus, as in the constant-delay fit
+    m = _delay_inliers(t_imu, g_proj, rr)
+    if m.sum() < 10:
+        return np.nan, np.nan
+    coef, *_ = np.linalg.lstsq(np.column_stack([rr[m], np.ones(m.sum())]), g_proj[m], rcond=None)
+    h = float(np.median(np.diff(t_imu)))
+    t_imu, g_proj, x = t_imu[act], g_proj[act], x[act]
+    se = np.nan
     for _ in range(iterations):
-        rr = np.interp(t_imu + tau + drift * x, t_tab, r_tab, left=np.nan, right=np.nan)
-        m = _delay_inliers(t_imu, g_proj, rr)
+        tt = t_imu + tau + drift * x
+        rr = np.interp(tt, t_tab, r_tab, left=np.nan, right=np.nan)
+        # dr/dt by central differences one IMU sample apart (np.gradient of the full record; the subset has gaps)
+        rdot = (np.interp(tt + h, t_tab, r_tab) - np.interp(tt - h, t_tab, r_tab)) / (2 * h)
+        e = g_proj - coef[0] * rr - coef[1]
+        ok = np.isfinite(e)
+        med = np.median(e[ok])
+        sig_all = MAD_TO_SIGMA * np.median(np.abs(e[ok] - med))
+        m = ok & (np.abs(e - med) <= 5 * sig_all) if sig_all > 0 else ok
         if m.sum() < 10:
             return np.nan, np.nan
-        a_mat = np.column_stack([rr[m], np.ones(m.sum())])
-        coef, *_ = np.linalg.lstsq(a_mat, g_proj[m], rcond=None)
-        e = g_proj[m] - a_mat @ coef
-        deriv = coef[0] * np.gradient(rr[m], t_imu[m])
+        e = e[m]
+        deriv = coef[0] * rdot[m]
         jac = np.column_stack([deriv, deriv * x[m]])
         info = jac.T @ jac
         if not np.linalg.det(info) > 0:
@@ -148,10 +170,11 @@ def _refine_delay_drift(t_imu, g_proj, t_tab, r_tab, offset, drift, iterations: 
         step = np.linalg.solve(info, jac.T @ e)
         tau += float(step[0])
         drift += float(step[1])
-        if abs(step[1]) < 1e-12:
+        sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
+        se = float(sig * np.sqrt(np.linalg.inv(info)[1, 1]))
+        if abs(step[1]) < 1e-3 * se:  # converged far inside its own uncertainty
             break
-    sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
-    return float(drift), float(sig * np.sqrt(np.linalg.inv(info)[1, 1]))
+    return float(drift), se
 
 
 def _delay_inliers(t_imu, g_proj, rr) -> np.ndarray:
