@@ -67,7 +67,8 @@ def test_null_device_report_schema_cli_and_determinism(null_archive, tmp_path):
     html = (out / "NULL-T.html").read_text()
     assert "No significant gap" in html and "data:image/png;base64" in html
     twin = json.loads((out / "NULL-T.twin.json").read_text())
-    assert twin["device_id"] == "NULL-T" and twin["effects"] == []
+    assert twin["device"]["id"] == "NULL-T" and twin["effects"] == []
+    jsonschema.validate(twin, json.loads((REPO / "raw_schemas" / "device_model.schema.json").read_text()))
     # deterministic for a seed, whatever the worker count
     out2 = tmp_path / "out2"
     r = CliRunner().invoke(main, ["diagnose", "--archive", str(null_archive), "--out", str(out2), "--replicates", "4",
@@ -147,3 +148,36 @@ def test_sim_to_real_stage_through_the_engine(null_archive, tmp_path):
     jsonschema.validate(rep, SCHEMA)
     assert (d / "NULL-T.html").is_file() and (d / "NULL-T.twin.json").is_file()
     assert list(store.read("sim_to_real", "NULL-T", "where").columns)[:3] == ["view", "run_id", "channel"]
+
+
+def test_twin_file_is_a_device_model_that_simulate_replays(null_archive, tmp_path):
+    """``<device>.twin.json`` is a device-model file (raw_schemas/device_model.schema.json) whose accepted effects
+    are the simulator's families, and ``imulab simulate --device-model FILE --replay RUN`` replays it."""
+    from click.testing import CliRunner
+
+    from assets_lib.sim.device_model import effects_of
+    from assets_lib.simreal.effects import FAMILIES
+    from imulab.cli import main
+    from raw_schemas.device_model import load_device_model
+
+    exp = load_device(null_archive, "NULL-T")
+    twin = fit_twin(exp)
+    coefs = {"g_sensitivity": [1e-7, 0.0, 0.0], "scale_factor_nonlinearity": [1e-6, -1e-6], "lever_arm": [0.01, 0.0, 0.0],
+             "table_rate_error": [1e-4, 0.0, 0.0, 2e-4], "table_wobble": [1e-4, -5e-5]}
+    eff = [(f, None if not fam.channels else "gyro_x", coefs.get(f, [1e-6]), fam.shapes[-1]) for f, fam in FAMILIES.items()]
+    doc = twin.with_effects(eff).to_device_model(exp.runs)
+    jsonschema.validate(doc, json.loads((REPO / "raw_schemas" / "device_model.schema.json").read_text()))
+    assert {e["family"] for e in doc["effects"]} == set(FAMILIES)
+    path = tmp_path / "m.twin.json"
+    path.write_text(json.dumps(doc))
+    model = load_device_model(path)
+    assert len(effects_of(model)) >= len(FAMILIES)  # every family instantiates in the simulator's chain
+    wob = next(e for e in doc["effects"] if e["family"] == "table_wobble")["params"]
+    assert wob["tilt_rad"] == pytest.approx(np.hypot(1e-4, 5e-5))
+    # replay of the null twin (no effects) through the CLI
+    path.write_text(json.dumps(twin.to_device_model(exp.runs)))
+    run_dir = next(p for p in (null_archive / "NULL-T").iterdir() if p.name.endswith("pos24") and p.name.startswith("pc00"))
+    r = CliRunner().invoke(main, ["simulate", "--device-model", str(path), "--replay", str(run_dir), "--out",
+                                  str(tmp_path / "rep")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "rep" / "NULL-T" / run_dir.name / "_COMPLETE").exists()

@@ -45,6 +45,10 @@ class Diagnosis:
     timings_s: dict = field(default_factory=dict)
     plots: dict = field(default_factory=dict)  # data for the HTML report
 
+    def twin_file(self) -> dict:
+        """``<device>.twin.json``: the augmented twin as a device-model file (raw_schemas/device_model.schema.json)."""
+        return self.augmented.to_device_model(self.plots["exp"].runs)
+
 
 def _rk(twin: TwinModel) -> np.ndarray:
     return np.array([p.k for p in twin.noise])

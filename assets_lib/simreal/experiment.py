@@ -185,8 +185,8 @@ def process_run(inp: RunInputs, imu: pd.DataFrame, allan_taus: bool = True) -> P
             m = np.unique(np.round(2.0 ** np.arange(0, np.log2(n / 8.0))).astype(int))
             for j, ch in enumerate(CHANNEL_NAMES):
                 r = (y[sel, j] - ref[sel, j])
-                tau_m, av = overlapping_avar(r, m)
-                allan[ch] = (np.asarray(tau_m, float) / fs, np.sqrt(np.asarray(av, float)))
+                av, _terms = overlapping_avar(r, m)  # (avar per cluster size, number of terms)
+                allan[ch] = (np.asarray(m, float) / fs, np.sqrt(np.asarray(av, float)))
                 fq, psd = welch(r - r.mean(), fs=fs, nperseg=1024)
                 band = fq > 0.5
                 if band.sum() > 8:

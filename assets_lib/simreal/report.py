@@ -223,7 +223,7 @@ def write_outputs(diag, out_dir: Path) -> dict:
     paths = {"json": out_dir / f"{dev}.json", "html": out_dir / f"{dev}.html", "twin": out_dir / f"{dev}.twin.json"}
     write_atomic(paths["json"], json.dumps(_clean(rep), indent=1) + "\n")
     write_atomic(paths["html"], render_html(rep, diag))
-    write_atomic(paths["twin"], json.dumps(_clean(diag.augmented.to_json()), indent=1) + "\n")
+    write_atomic(paths["twin"], json.dumps(_clean(diag.twin_file()), indent=1) + "\n")
     return paths
 
 

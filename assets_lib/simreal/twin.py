@@ -80,6 +80,130 @@ class TwinModel:
                          "shape": s} for f, c, v, s in self.effects],
         }
 
+    def to_device_model(self, runs) -> dict:
+        """The twin as a device-model file (``raw_schemas/device_model.schema.json``, replayed by ``imulab simulate
+        --device-model FILE --replay RUN``): per power cycle K, E from diag(K)(I + E), linear G, accelerometer
+        matrix, K2 and cross-coupling; the cycle's bias = mean of its runs' fitted biases (each run's own bias in
+        ``provenance.bias_by_run_si``); Allan terms per axis; LSB and rails from the manifests; accepted effects as
+        the simulator's effect families (``assets_lib.sim.effects``), coefficients converted by
+        :func:`effect_spec` (the library regressor coefficients stay in ``provenance.effects``)."""
+        from raw_schemas.device_model import DeviceModel
+
+        man = runs[0].manifest
+        cycles = []
+        for pc, m in sorted(self.cycles.items()):
+            rb = [self.bias[r.run_id] for r in runs if r.power_cycle == pc and r.run_id in self.bias]
+            b = np.mean(rb, axis=0) if rb else np.zeros(6)
+            cycles.append({"index": int(pc), "gyro": _triad_dict(m.gyro_m, b[:3], "radps", g=m.gyro_g),
+                           "accel": _triad_dict(m.accel_m, b[3:], "mps2", k2=m.accel_k2, kc=m.accel_kc),
+                           "sources": [r.run_id for r in runs if r.power_cycle == pc]})
+        ch = man.channels
+
+        def lsb(name, fam):
+            spec = ch.get(name)
+            if spec is not None and spec.lsb and spec.lsb_unit:
+                return float(spec.lsb), spec.lsb_unit
+            return 1e-12, "rad/s" if fam == "gyro" else "m/s^2"
+
+        (gl, gu), (al, au) = lsb("gyro_x", "gyro"), lsb("accel_x", "accel")
+        noise = {tri: {ax: {"q": p.q, "n": p.n, "b": p.b, "k": p.k, "r": p.r}
+                       for ax, p in zip(AX, self.noise[3 * i:3 * i + 3])} for i, tri in enumerate(("gyro", "accel"))}
+        omega_max = max([float(np.max(np.abs(r.table_rate_radps))) for r in runs if r.kind == "rate"] or [1.0])
+        axis = next((np.asarray(r.manifest.plan.table_axis_level, float) for r in runs if r.kind == "rate"),
+                    np.array([0.0, 0.0, 1.0]))
+        effects = [effect_spec(f, c, v, s_, omega_max, axis) for f, c, v, s_ in self.effects]
+        d = {
+            "schema_version": "1.0",
+            "device": {"id": man.device.id, "model": man.device.model, "grade": man.device.grade},
+            "sample_rate_hz": float(man.sample_rate_hz),
+            "outputs": {"gyro_lsb": gl, "gyro_lsb_unit": gu, "accel_lsb": al, "accel_lsb_unit": au,
+                        "gyro_full_scale_radps": self.rails[0], "accel_full_scale_mps2": self.rails[1]},
+            "noise": noise,
+            "power_cycles": cycles,
+            "effects": [e for e in effects if e is not None],
+            "provenance": {"source": "imulab diagnose (assets_lib.simreal): base twin fitted from the device's runs "
+                                     "plus the accepted effects",
+                           "bias_by_run_si": {r: list(map(float, b)) for r, b in self.bias.items()},
+                           "effects": [{"family": f, "channel": c, "coefficients": list(map(float, np.atleast_1d(v))),
+                                        "shape": s_} for f, c, v, s_ in self.effects]},
+        }
+        return DeviceModel.model_validate(d).model_dump(mode="json")
+
+
+def _triad_dict(m: np.ndarray, b: np.ndarray, unit: str, g=None, k2=None, kc=None) -> dict:
+    k = np.diag(m).copy()
+    k[k == 0] = 1.0
+    e = m / k[:, None] - np.eye(3)
+    np.fill_diagonal(e, 0.0)
+    out = {"scale_factor": k.tolist(), "misalignment_rad": e.tolist(), f"bias_{unit}": [float(x) for x in b]}
+    if g is not None:
+        out["g_sensitivity_radps_per_mps2"] = np.asarray(g, float).tolist()
+    if k2 is not None:
+        out["k2_per_mps2"] = np.asarray(k2, float).tolist()
+        kc = np.asarray(kc, float).copy()
+        np.fill_diagonal(kc, 0.0)
+        out["cross_coupling_per_mps2"] = kc.tolist()
+    return out
+
+
+def _level_basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two level-frame unit vectors perpendicular to the table axis used by ``experiment.run_inputs``."""
+    a = np.asarray(axis, float)
+    e1 = np.cross(a, [0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = e1 - a * (a @ e1)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(a, e1)
+
+
+def effect_spec(family: str, channel, coef, shape, omega_max: float, axis) -> dict | None:
+    """An accepted library effect as the simulator's effect family (``{"family", "params"}``, SI): the library
+    regressors of ``effects.py`` are the simulator's forms to first order (docs/simreal.md, twin file)."""
+    c = [float(x) for x in np.atleast_1d(coef)]
+    j = None if channel is None else CHANNEL_NAMES.index(channel)
+    gyro = j is not None and j < 3
+
+    def vec(v):
+        out = [0.0, 0.0, 0.0]
+        out[j % 3] = v
+        return out
+
+    z3 = [0.0, 0.0, 0.0]
+    if family == "temperature_bias":
+        p = {"gyro_radps_per_k" if gyro else "accel_mps2_per_k": vec(c[0]), "lag_s": float(shape or 0.0)}
+    elif family == "temperature_scale_factor":
+        p = {"gyro_per_k" if gyro else "accel_per_k": vec(c[0]), "lag_s": float(shape or 0.0)}
+    elif family == "warmup_bias":
+        p = {"tau_s": [float(shape)], "gyro_radps": [vec(c[0]) if gyro else z3], "accel_mps2": [z3 if gyro else vec(c[0])]}
+    elif family == "bias_ramp":
+        p = {"gyro_radps_per_s" if gyro else "accel_mps2_per_s": vec(c[0])}
+    elif family == "g_sensitivity":
+        q = [[0.0] * 6 for _ in range(3)]
+        q[j][:3] = c[:3]
+        p = {"quadratic_radps_per_mps2sq": q}
+    elif family == "scale_factor_nonlinearity":
+        fs = float(omega_max)
+        p = {"sensor": "gyro", "full_scale": fs, "form": "polynomial", "quadratic": vec(c[0] * fs), "cubic": vec(c[1] * fs**2)}
+    elif family == "scale_factor_asymmetry":
+        p = {"gyro": vec(2.0 * c[0])}
+    elif family == "lever_arm":
+        p = {"position_m": c[:3]}
+    elif family == "table_rate_error":
+        p = {"ripple_1_per_rev": float(np.hypot(c[0], c[1])), "ripple_1_phase_rad": float(np.arctan2(c[1], c[0])),
+             "ripple_2_per_rev": float(np.hypot(c[2], c[3])), "ripple_2_phase_rad": float(np.arctan2(c[3], c[2]))}
+    elif family == "table_wobble":
+        e1, e2 = _level_basis(axis)
+        eps = c[0] * e1 + c[1] * e2  # small rotation of the true orientation, level frame
+        a = np.asarray(axis, float)
+        s1 = np.cross(np.cross(a, [0.0, 1.0, 0.0]) if abs(a[0]) < 0.9 else np.cross(a, [0.0, 0.0, 1.0]), a)
+        s1 /= np.linalg.norm(s1)
+        s2 = np.cross(a, s1)  # the simulator's tilt basis (TableWobble.tilt_rotation): eps = beta (a x d)
+        p = {"tilt_rad": float(np.linalg.norm(eps)), "azimuth_rad": float(np.arctan2(-eps @ s1, eps @ s2))}
+    elif family == "timebase_error":
+        p = {"clock_rate_error": c[0], "integrating_outputs": False}
+    else:
+        return None
+    return {"family": family, "params": p}
+
 
 def _cycle_model(exp: DeviceExperiment, pc: int) -> CycleModel | None:
     from assets_lib.calibration.multiposition import (
