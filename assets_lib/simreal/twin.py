@@ -51,6 +51,7 @@ class TwinModel:
     noise: tuple  # 6 AllanParams
     rails: tuple  # (gyro rail or None, accel rail or None), SI
     effects: tuple = field(default=())  # accepted effects: tuple[(family, channel, coefficients), ...]
+    gm: tuple = field(default=())  # per channel (sigma, tau_s) of a Gauss-Markov term (noise re-estimation), or ()
 
     def cycle(self, pc: int) -> CycleModel:
         if pc in self.cycles:
@@ -59,7 +60,10 @@ class TwinModel:
         return self.cycles[k]
 
     def with_effects(self, effects) -> TwinModel:
-        return TwinModel(self.device_id, self.cycles, self.bias, self.noise, self.rails, tuple(effects))
+        return TwinModel(self.device_id, self.cycles, self.bias, self.noise, self.rails, tuple(effects), self.gm)
+
+    def with_noise(self, noise: tuple, gm: tuple) -> TwinModel:
+        return TwinModel(self.device_id, self.cycles, self.bias, tuple(noise), self.rails, self.effects, tuple(gm))
 
     def to_json(self) -> dict:
         """Documented device-model format (docs/simreal.md sec. "twin file"): SI, one entry per power cycle."""
@@ -106,8 +110,11 @@ class TwinModel:
             return 1e-12, "rad/s" if fam == "gyro" else "m/s^2"
 
         (gl, gu), (al, au) = lsb("gyro_x", "gyro"), lsb("accel_x", "accel")
-        noise = {tri: {ax: {"q": p.q, "n": p.n, "b": p.b, "k": p.k, "r": p.r}
-                       for ax, p in zip(AX, self.noise[3 * i:3 * i + 3])} for i, tri in enumerate(("gyro", "accel"))}
+        gm = self.gm or ((0.0, 1.0),) * 6
+        noise = {tri: {ax: {"q": p.q, "n": p.n, "b": p.b, "k": p.k, "r": p.r, "gm_sigma": float(g[0]),
+                            "gm_tau_s": float(g[1])}
+                       for ax, p, g in zip(AX, self.noise[3 * i:3 * i + 3], gm[3 * i:3 * i + 3])}
+                 for i, tri in enumerate(("gyro", "accel"))}
         omega_max = max([float(np.max(np.abs(r.table_rate_radps))) for r in runs if r.kind == "rate"] or [1.0])
         axis = next((np.asarray(r.manifest.plan.table_axis_level, float) for r in runs if r.kind == "rate"),
                     np.array([0.0, 0.0, 1.0]))
@@ -315,6 +322,50 @@ def fit_twin(exp: DeviceExperiment) -> TwinModel:
     return TwinModel(exp.device_id, twin.cycles, bias, twin.noise, twin.rails)
 
 
+GM_TAUS_S = (2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0)
+
+
+def refit_noise(twin: TwinModel, exp: DeviceExperiment) -> tuple[TwinModel, dict]:
+    """Noise-model re-estimation (simreal.md sec. 4.2: a gap seen only in stochastic views goes to the noise model):
+    per channel with a long static record, the IEEE 952 terms (N, B, K; Q kept) plus one first-order
+    Gauss-Markov term ([ELSHEIMY2008], correlation time profiled over ``GM_TAUS_S``) fitted to the static
+    residual's Allan variance by non-negative least squares in relative error, weights sqrt(EDF) with
+    EDF ~ T/tau. Returns the re-estimated twin and, per channel, the fitted terms."""
+    from scipy.optimize import nnls
+
+    from assets_lib.sim.effects.stochastic import gauss_markov_avar
+
+    curves = {}
+    for r in exp.runs:
+        for ch, (tau, adev, _edf) in exp.processed[r.run_id].allan.items():
+            if ch not in curves or tau.size > curves[ch][0].size:
+                curves[ch] = (np.asarray(tau, float), np.asarray(adev, float))
+    noise, gm, fitted = list(twin.noise), list(twin.gm or ((0.0, 1.0),) * 6), {}
+    for j, ch in enumerate(CHANNEL_NAMES):
+        if ch not in curves:
+            continue
+        tau, adev = curves[ch]
+        ok = np.isfinite(adev) & (adev > 0) & (tau > 0)
+        tau, av = tau[ok], adev[ok] ** 2
+        if tau.size < 5:
+            continue
+        q = noise[j].q
+        w = np.sqrt(tau.max() * 8.0 / tau) / av
+        base = np.column_stack([1.0 / tau, np.full(tau.size, 2 * np.log(2) / np.pi), tau / 3.0])
+        best = None
+        for tc in (None,) + GM_TAUS_S:
+            X = base if tc is None else np.column_stack([base, gauss_markov_avar(tau, 1.0, tc)])
+            target = av - 3 * q**2 / tau**2
+            th, res = nnls(X * w[:, None], target * w)
+            if best is None or res < best[0] - 1e-9:
+                best = (res, tc, th)
+        _, tc, th = best
+        noise[j] = AllanParams(q=q, n=float(np.sqrt(th[0])), b=float(np.sqrt(th[1])), k=float(np.sqrt(th[2])))
+        gm[j] = (float(np.sqrt(th[3])), float(tc)) if tc is not None else (0.0, 1.0)
+        fitted[ch] = {"n": noise[j].n, "b": noise[j].b, "k": noise[j].k, "gm_sigma": gm[j][0], "gm_tau_s": gm[j][1]}
+    return twin.with_noise(tuple(noise), tuple(gm)), fitted
+
+
 def simulate_run_imu(twin: TwinModel, inp: RunInputs, rng: np.random.Generator, noise_scale=None) -> pd.DataFrame:
     """A replicate of a recorded run: the twin (plus its effects) on the run's recorded inputs, canonical frame."""
     from assets_lib.simreal.effects import inject
@@ -330,6 +381,12 @@ def simulate_run_imu(twin: TwinModel, inp: RunInputs, rng: np.random.Generator, 
     for i in range(3):
         g[:, i] += allan_noise(n, fs, noise[i], rng)
         a[:, i] += allan_noise(n, fs, noise[3 + i], rng)
+    if twin.gm:
+        from assets_lib.sim.effects.stochastic import gauss_markov
+
+        for j, (sig, tc) in enumerate(twin.gm):
+            if sig > 0:
+                (g if j < 3 else a)[:, j % 3] += gauss_markov(n, fs, sig, tc, rng)
     for fam, ch, coef, shape in twin.effects:
         g, a = inject(fam, ch, coef, shape, inp, g, a, rng)
     if twin.rails[0]:
