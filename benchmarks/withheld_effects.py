@@ -398,7 +398,9 @@ def main(argv=None):
         n = len(generate(root, a.tier, pattern=a.case))
         print(f"generated {n} devices in {time.time() - t0:.0f} s", flush=True)
     if a.step in ("diagnose", "all"):
-        devs = [c["device_id"] for c in select_cases(cases(a.tier), a.case)] if a.case else None
+        # in the order the patterns are given (a priority order for runs that may be cut short)
+        devs = list(dict.fromkeys(c["device_id"] for p in a.case for c in select_cases(cases(a.tier), [p]))) \
+            if a.case else None
         diagnose_all(root, a.replicates, a.seed, a.workers, devs, redo=a.redo)
     if a.step in ("score", "all"):
         s = score(root)

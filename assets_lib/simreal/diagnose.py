@@ -206,7 +206,7 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
                    "initial_floor_sd": float(init_sd)},
         "not_testable": not_testable,
         "noise_refit": ({"terms_si": noise_refit,
-                         "deterministic_views_still_significant": int(len(vt_noise.significant(False)))}
+                         "deterministic_views_still_significant": len(vt_noise.significant(False))}
                         if noise_refit is not None else None),
         "replicates": {"base": replicates, "augmented": (len(aug_coefs) if effects else 0), "seed": seed},
         "views_after": ([{"view": r.view, "run_id": r.run_id, "channel": r.channel, "z": float(r.z),

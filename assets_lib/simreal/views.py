@@ -221,7 +221,7 @@ def calibrate(real: dict, reps: list[dict], min_reps: int = 3) -> ViewTable:
     # twin's own estimation error, which replicates of a fixed twin do not carry) rescales the group's z by the
     # robust scale median|z| / 0.6745 when it exceeds 1; a localised gap moves few views and not the median
     t["null_scale"] = 1.0
-    for _g, idx in t.groupby("group").groups.items():
+    for idx in t.groupby("group").groups.values():
         if len(idx) >= MIN_EMPIRICAL_NULL:
             sc = float(np.median(np.abs(t.loc[idx, "z"]))) / 0.6745
             if sc > 1.0:
