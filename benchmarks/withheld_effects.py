@@ -269,10 +269,20 @@ def _sensor(c):
     return "gyro" if ch < 3 else "accel"
 
 
-def generate(root: Path, tier: str, seed: int = 11) -> list[dict]:
+def select_cases(all_cases: list[dict], pattern: list[str] | None) -> list[dict]:
+    """Cases whose device id, kind or category contains one of ``pattern`` (all when none): targeted reruns."""
+    if not pattern:
+        return all_cases
+    return [c for c in all_cases if any(p in c["device_id"] or p == c["kind"] or p == c["category"] for p in pattern)]
+
+
+def generate(root: Path, tier: str, seed: int = 11, pattern: list[str] | None = None) -> list[dict]:
     root.mkdir(parents=True, exist_ok=True)
     out = []
-    for c in cases(tier):
+    for c in select_cases(cases(tier), pattern):
+        if (root / "truth" / f"{c['device_id']}.json").exists():
+            out.append(json.loads((root / "truth" / f"{c['device_id']}.json").read_text()))
+            continue
         out.append(write_case(root, c, seed))
     digest = hashlib.sha256()
     for p in sorted((root / "truth").glob("*.json")):
@@ -281,7 +291,7 @@ def generate(root: Path, tier: str, seed: int = 11) -> list[dict]:
     return out
 
 
-def diagnose_all(root: Path, replicates: int, seed: int, workers: int | None, devices=None) -> None:
+def diagnose_all(root: Path, replicates: int, seed: int, workers: int | None, devices=None, redo: bool = False) -> None:
     from assets_lib.simreal.diagnose import diagnose_device
     from assets_lib.simreal.experiment import list_devices
     from assets_lib.simreal.report import _clean, write_atomic
@@ -289,7 +299,7 @@ def diagnose_all(root: Path, replicates: int, seed: int, workers: int | None, de
     landing = root / "landing"
     rep_dir = root / "reports"
     for dev in devices or list_devices(landing):
-        if (rep_dir / f"{dev}.json").exists():
+        if (rep_dir / f"{dev}.json").exists() and not redo:
             continue
         t0 = time.time()
         d = diagnose_device(landing, dev, replicates=replicates, seed=seed, workers=workers,
@@ -378,15 +388,20 @@ def main(argv=None):
     ap.add_argument("--replicates", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=None)
-    ap.add_argument("--device", action="append")
+    ap.add_argument("--case", "--device", dest="case", action="append",
+                    help="only cases whose device id contains this, or whose kind / category equals it (repeatable)")
+    ap.add_argument("--redo", action="store_true", help="diagnose again even when a report exists")
     a = ap.parse_args(argv)
     root = Path(a.root)
     t0 = time.time()
     if a.step in ("generate", "all"):
-        generate(root, a.tier)
-        print(f"generated {len(cases(a.tier))} devices in {time.time() - t0:.0f} s", flush=True)
+        n = len(generate(root, a.tier, pattern=a.case))
+        print(f"generated {n} devices in {time.time() - t0:.0f} s", flush=True)
     if a.step in ("diagnose", "all"):
-        diagnose_all(root, a.replicates, a.seed, a.workers, a.device)
+        # in the order the patterns are given (a priority order for runs that may be cut short)
+        devs = list(dict.fromkeys(c["device_id"] for p in a.case for c in select_cases(cases(a.tier), [p]))) \
+            if a.case else None
+        diagnose_all(root, a.replicates, a.seed, a.workers, devs, redo=a.redo)
     if a.step in ("score", "all"):
         s = score(root)
         rows = s.pop("rows")

@@ -8,9 +8,9 @@ scale (twice the held-out log predictive gain), so the gate "likelihood ratio 10
 gate (the same score on replicates of the base twin, ``threshold``), and is positive in all but one fold (at
 least two folds). Shape parameters (warm-up tau) are chosen on the training runs of each fold.
 
-Ambiguity (simreal.md sec. 4.4): with every acceptance, candidates that tie (within 2 ln 10 and passing the
-gates) or whose columns reproduce the accepted signature with alias R^2 >= 0.95 after projecting out the
-already accepted effects.
+Ambiguity (simreal.md sec. 4.2 step 4 and 4.4): with every acceptance, candidates that pass the gates and tie
+(within 2 ln 10 overall, or the accepted one ahead in fewer than K - 1 of the common folds), or whose columns
+reproduce the accepted signature with alias R^2 >= 0.95 after projecting out the already accepted effects.
 """
 
 from __future__ import annotations
@@ -125,6 +125,18 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
     return Score(gi, float(np.sum(gains)), [float(g) for g in gains], [int(k) for k in carry], ATOMS[full].shape, full)
 
 
+def _separable(best: Score, other: Score) -> bool:
+    """simreal.md sec. 4.2 step 4: the best candidate is separable from another only if it is ahead in at least
+    K - 1 of the K folds both are scored on (with fewer than two common folds: by the overall margin alone)."""
+    common = [k for k in best.folds if k in other.folds]
+    if len(common) < 2:
+        return True
+    gb = dict(zip(best.folds, best.fold_gains))
+    go = dict(zip(other.folds, other.fold_gains))
+    ahead = sum(gb[k] > go[k] for k in common)
+    return ahead >= len(common) - 1
+
+
 def alias_r2(t: Totals, base_atoms: list[int], chosen: int, other_atoms: list[int]) -> float:
     """Fraction of the chosen atom's fitted signature (base projected out) reproduced by another candidate."""
     G = t.G.sum(0)
@@ -164,6 +176,7 @@ class Selection:
     ambiguity: list  # list of lists of group indices
     first_step: list  # Score of every candidate at step 1 (for reports and the null calibration)
     coef: dict = field(default_factory=dict)  # atom -> coefficients (all-data fit of the final model)
+    jackknife: dict = field(default_factory=dict)  # atom -> leave-one-run-out coefficients (runs carrying the model)
 
 
 def first_step_scores(t: Totals) -> dict:
@@ -198,7 +211,8 @@ def select(d: Design, thresholds: dict | None = None) -> Selection:
         if not ok:
             break
         best = max(ok, key=lambda s: s.delta_lpd)
-        tie = [s.group for s in ok if s.group != best.group and s.delta_lpd >= best.delta_lpd - TIE]
+        tie = [s.group for s in ok if s.group != best.group and (s.delta_lpd >= best.delta_lpd - TIE
+                                                                  or not _separable(best, s))]
         alias = []
         for s in scores:
             if s.group == best.group or s.group in tie:
@@ -209,15 +223,20 @@ def select(d: Design, thresholds: dict | None = None) -> Selection:
         amb.append([best.group] + tie + alias)
         base_atoms.append(best.atom)
         used_groups.add(best.group)
-    coef = {}
+    coef, jack = {}, {}
     if base_atoms:
-        g = t.coef(cols_of(base_atoms))
+        cols = cols_of(base_atoms)
+        g = t.coef(cols)
+        carry = np.flatnonzero(t.carries[:, base_atoms].any(axis=1))
+        gj = [_solve((t.G.sum(0) - t.G[k])[np.ix_(cols, cols)], (t.b.sum(0) - t.b[k])[cols]) for k in carry] \
+            if carry.size >= 3 else []
         k = 0
         for a in base_atoms:
             n = len(ATOMS[a].cols)
             coef[a] = g[k:k + n]
+            jack[a] = [x[k:k + n] for x in gj]
             k += n
-    return Selection(accepted, amb, first, coef)
+    return Selection(accepted, amb, first, coef, jack)
 
 
 def heldout_error(d: Design, atoms: list[int], blocks=(0, 1, 2)) -> float:

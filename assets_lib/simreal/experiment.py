@@ -69,7 +69,7 @@ class ProcessedRun:
     clock_drift_stderr_ppm: float
     window_step: np.ndarray  # per sample
     keep: np.ndarray
-    allan: dict = field(default_factory=dict)  # channel -> (tau_s, adev) for static runs
+    allan: dict = field(default_factory=dict)  # channel -> (tau_s, adev, approximate EDF) for static runs
     spectrum_peak: dict = field(default_factory=dict)  # channel -> (log10 peak-to-median PSD ratio, frequency Hz)
     noise_fits: dict = field(default_factory=dict)  # segmentation's pooled Allan model per channel
 
@@ -185,8 +185,9 @@ def process_run(inp: RunInputs, imu: pd.DataFrame, allan_taus: bool = True) -> P
             m = np.unique(np.round(2.0 ** np.arange(0, np.log2(n / 8.0))).astype(int))
             for j, ch in enumerate(CHANNEL_NAMES):
                 r = (y[sel, j] - ref[sel, j])
-                tau_m, av = overlapping_avar(r, m)
-                allan[ch] = (np.asarray(tau_m, float) / fs, np.sqrt(np.asarray(av, float)))
+                av, terms = overlapping_avar(r, m)  # (avar per cluster size, number of terms)
+                allan[ch] = (np.asarray(m, float) / fs, np.sqrt(np.asarray(av, float)),
+                             np.asarray(terms, float) / np.asarray(m, float))  # EDF ~ terms / m (white noise)
                 fq, psd = welch(r - r.mean(), fs=fs, nperseg=1024)
                 band = fq > 0.5
                 if band.sum() > 8:

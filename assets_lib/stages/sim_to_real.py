@@ -62,7 +62,7 @@ def sim_to_real(device: str, inputs) -> StageOutput | None:
               "replicates": STAGE_REPLICATES, "seed": STAGE_SEED},
         files={f"{device}.json": (json.dumps(rep, indent=1) + "\n").encode(),
                f"{device}.html": render_html(rep, diag).encode(),
-               f"{device}.twin.json": (json.dumps(_clean(diag.augmented.to_json()), indent=1) + "\n").encode()},
+               f"{device}.twin.json": (json.dumps(_clean(diag.twin_file()), indent=1) + "\n").encode()},
         summary={"verdict": rep["verdict"], "gap_z": float(rep["gap"]["z"]), "n_effects": len(rep["effects"]),
                  "shrink_ratio": float(rep["shrink"]["ratio"] or 0.0)},
         plots=pngs,
