@@ -253,6 +253,29 @@ class NoiseFit:
         parts = self.term_avar(tau_s)
         return np.sum(list(parts.values()), axis=0) if parts else np.zeros(np.shape(tau_s))
 
+    def design(self, tau_s: np.ndarray) -> np.ndarray:
+        """Columns g_k(tau) of the fitted terms ([IEEE952] C.23, C.25, C.27): sigma^2(tau) = design @ theta."""
+        tau = np.asarray(tau_s, dtype=float)
+        cols = []
+        for t in self.terms:
+            if t in TERMS:
+                cols.append(basis(tau, (t,))[:, 0])
+            elif t == "M":
+                cols.append(markov_avar_unit(tau, self.markov_tc_s))
+            else:
+                cols.append(sinusoid_avar_unit(tau, self.sin_f0_hz))
+        return np.column_stack(cols)
+
+    def model_avar_dof(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model AVAR at ``tau_s`` and its degrees of freedom 2 sigma^4 / (g' C g) (Satterthwaite, C the
+        Wald covariance of theta; inf when C gives it no variance)."""
+        g = self.design(tau_s)
+        a = g @ self.theta
+        var = np.einsum("ij,jk,ik->i", g, self.theta_cov, g)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dof = np.where(var > 0, 2.0 * a**2 / var, np.inf)
+        return a, dof
+
     def parameter(self, name: str, method: str = "fit") -> NoiseParameter:
         for p in self.parameters if method == "fit" else self.slope_parameters:
             if p.name == name:
@@ -476,20 +499,14 @@ def fit_noise(
             delta, V = _discrepancy(Xd, a, Vstat, np.maximum(Xd @ theta, 1e-300))
             if delta == 0.0:
                 break
-    theta, rss = _nn_gls(Xd, a, V)
-    L = np.linalg.cholesky(V)
-    Xw = np.linalg.solve(L, Xd)
-    info = Xw.T @ Xw
-    cov = np.linalg.pinv(info)
-    params, slope_params = [], []
     z2 = stats.norm.ppf(0.5 + ci_level / 2.0)
-    z1 = stats.norm.ppf(ci_level)
+    theta, rss, cov, sd_all, bound_theta = _significant_terms(Xd, a, V, z2)
+    params, slope_params = [], []
     for k, t in enumerate(term_list):
-        th, sd = float(theta[k]), float(math.sqrt(max(cov[k, k], 0.0)))
+        th, sd = float(theta[k]), float(sd_all[k])
         name = {"M": "markov_q", "S": "sin_amplitude"}.get(t, t)
-        if th <= 0 or th - z2 * sd <= 0:
-            ub = max(th, 0.0) + z1 * sd
-            ub_val = _theta_to_param(t, ub, tc)
+        if k in bound_theta:
+            ub_val = _theta_to_param(t, bound_theta[k], tc)
             params.append(_param(name, math.nan, 0.0, ub_val, sensor, "fit", True, ci_level))
         else:
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
@@ -545,6 +562,68 @@ def fit_noise(
         outside_tau_ranges=outside,
         warnings=tuple(warns),
     )
+
+
+def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float):
+    """Non-negative GLS with backward elimination of the terms the data do not support.
+
+    A term whose two-sided Wald interval reaches zero (theta - z2 sd <= 0) is dropped, the least significant
+    first, and the rest refitted, until every remaining term is significant. Keeping unsupported terms at the
+    boundary biases the others: a quantization term fitted to white noise is positive half the time and, being
+    collinear with N at short taus, pulls N down by half its standard error (benchmarks/coverage_noise.py).
+    A dropped term is reported as an upper bound: the upper end of its two-sided interval when it is added alone to
+    the final terms (the same interval a two-sided report would print, so the report switching between the two
+    keeps its coverage: [FELDMAN1998]). Returns theta (dropped terms 0), the GLS chi2, the active-set covariance,
+    one standard deviation per term and {index: upper bound on theta} of the dropped terms.
+    """
+    p = Xd.shape[1]
+    L = np.linalg.cholesky(V)
+    Xw = np.linalg.solve(L, Xd)
+    info = Xw.T @ Xw
+    keep = list(range(p))
+    while True:
+        th_k, rss = _nn_gls(Xd[:, keep], a, V)
+        theta = np.zeros(p)
+        theta[keep] = th_k
+        cov, sd = _active_set_covariance(info, theta, keep)
+        weak = [k for k in keep if theta[k] <= 0 or theta[k] - z2 * sd[k] <= 0]
+        if not weak or len(keep) == 1:
+            break
+        keep.remove(min(weak, key=lambda k: theta[k] / sd[k] if sd[k] > 0 else 0.0))
+    bounds = {}
+    for k in range(p):
+        if k in keep and theta[k] > 0 and theta[k] - z2 * sd[k] > 0:
+            continue
+        idx = sorted(set(keep) | {k})
+        t2, _ = _nn_gls(Xd[:, idx], a, V)
+        th2 = np.zeros(p)
+        th2[idx] = t2
+        _, sd2 = _active_set_covariance(info, th2, idx)
+        bounds[k] = float(max(th2[k], 0.0) + z2 * sd2[k])
+    return theta, rss, cov, sd, bounds
+
+
+def _active_set_covariance(info: np.ndarray, theta: np.ndarray, allowed=None) -> tuple[np.ndarray, np.ndarray]:
+    """Wald covariance of the non-negative GLS fit on its active set ([LAWSON1974]: the terms at zero are
+    constraints, not parameters): (X_A' V^-1 X_A)^-1 for the terms with theta > 0, zero rows for the others.
+    Also one standard deviation per term: the active set's for an active term; for a term at zero (among
+    ``allowed``), its standard deviation when it is added alone to the active set. The full
+    inverse would charge every estimate with the collinearity of terms the data put at zero (e.g. Q against N at
+    short taus), widening the intervals of white-noise N by ~1.5x (benchmarks/coverage_noise.py)."""
+    p = len(theta)
+    act = np.flatnonzero(theta > 0)
+    cov = np.zeros((p, p))
+    sd = np.zeros(p)
+    if act.size:
+        cov[np.ix_(act, act)] = np.linalg.pinv(info[np.ix_(act, act)])
+        sd[act] = np.sqrt(np.maximum(np.diag(cov)[act], 0.0))
+    for k in np.flatnonzero(theta <= 0):
+        if allowed is not None and k not in allowed:
+            continue
+        idx = np.append(act, k)
+        c = np.linalg.pinv(info[np.ix_(idx, idx)])
+        sd[k] = math.sqrt(max(c[-1, -1], 0.0))
+    return cov, sd
 
 
 def _replace(fit: NoiseFit, **changes) -> NoiseFit:
