@@ -1,20 +1,22 @@
 """Monte Carlo coverage of every noise interval imulab prints, on the pipeline's own code path (issue 15, noise part).
 
-Each trial draws a device of one grade (``example_device``; grades cycled) and simulates ``--cycles`` power-cycled
-static runs (``static_long``, raw counts through ``ingest_frames``): the first ``--duration`` seconds long, the
-others a sixth of it. Every run goes through the ``allan_deviation`` stage's own computation
+Each trial draws a device of one grade (``example_device``; grades cycled) and simulates static runs
+(``static_long``, raw counts through ``ingest_frames``): one of ``--duration`` seconds and ``--cycles``
+power-cycled runs of a sixth of it. Every run goes through the ``allan_deviation`` stage's own computation
 (``assets_lib.stages.noise.allan_tables``: octave OADEV, the IEEE 952 fit with ``tau_min_s='auto'``, the
-``static_terms`` rows) and the device's runs through the ``repeatability`` stage's ``static_repeatability``.
+``static_terms`` rows) and the equal-length power-cycled runs through the ``repeatability`` stage's
+``static_repeatability`` (the long run is left out there: a rate ramp offsets the mean of a run of another length by
+R (T1 - T2) / 2, a deterministic difference the repeatability's noise model does not describe).
 Noise plans (cycled per grade):
 
 - ``device``: the grade's own noise (N, B, K; Q on the navigation gyro);
 - ``extra_terms``: plus the digital twin's ``noise_model`` effect with quantization Q, rate ramp R (gyro and
-  accelerometer) and accelerometer rate random walk K, each placed at a random crossing time with the white
-  noise so that it ranges from invisible to dominant;
+  accelerometer) and accelerometer rate random walk K, each placed at a random crossing time with the device's own
+  Allan variance so that it ranges from invisible to dominant;
 - ``markov``: plus a first-order Gauss-Markov term (``noise_model``'s ``gm_sigma``/``gm_tau``); the runs are
   fitted as ``imulab allan --markov`` fits them (``fit_noise(..., markov=True)``) and those terms are scored
-  (families ``*:markov_fit``); the stage's own fit (no Markov term) is not scored there, its model is not the
-  truth.
+  (families ``*:markov_fit``, long run); the stage's own fit (no Markov term) and the repeatability built on its
+  per-run standard errors are not scored there: its model is not the truth.
 
 Scored (rows of :func:`score_noise`):
 
@@ -37,7 +39,9 @@ markov_q = sqrt(theta_M) / T_c with theta_M = (q_c T_c)^2 = 2 sigma^2 T_c, i.e. 
 output over power cycles, sqrt(sb^2 + (ss x)^2) (bias and scale-factor turn-on spreads of
 ``DeviceTruth.for_power_cycle``; x the axis' input: earth rate or gravity).
 
-Not scored (statistics without an interval): ``markov_tc`` and ``sin_freq`` (grid-search values printed as points),
+``markov_tc`` is scored with its profile-likelihood interval (the T_c grid points whose GLS chi2 lies within
+chi2_1(0.95) of the minimum). Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
+printed as a point; no benchmark plan injects a sinusoid),
 the slope reads (method 'slope': one-point chi-square intervals of the curve, known to be biased when terms
 overlap; benchmarks/mc_noise_id.py measures their bias), N and B repeatability (relative spread of estimates whose
 truth is zero).
@@ -45,7 +49,7 @@ truth is zero).
 Hook for benchmarks/mc_calibration_coverage.py: ``score_noise(noise_trial(seed, k))`` returns the rows; rows carry
 family, grade, plan, truth, estimate, lo, hi, z, covered, trial.
 
-    python benchmarks/coverage_noise.py --seed S --trials N --workers 2 [--duration 1200] [--cycles 6]
+    python benchmarks/coverage_noise.py --seed S --trials N --workers 2 [--duration 1200] [--cycles 5]
 Writes benchmarks/results/noise_coverage.{json,md} (or --out).
 """
 
@@ -76,35 +80,35 @@ TARGET_MEAN_Z = 0.1
 TARGET_SD_Z = (0.9, 1.1)
 
 
-def _extra_effect(grade_noise: dict, duration_s: float, rng: np.random.Generator, plan: str):
-    """The ``noise_model`` effect of a plan with its truth (per sensor: dict of extra terms, SI), or None."""
+def _extra_effect(device_noise: dict, duration_s: float, rng: np.random.Generator, plan: str):
+    """The ``noise_model`` effect of a plan with its truth (per sensor: dict of extra terms, SI), or None.
+
+    Each extra term is placed at a crossing time tau_c with the device's own Allan variance (the term's AVAR equals
+    the device's at tau_c), tau_c log-uniform over a range where the term goes from invisible to dominant."""
     from assets_lib.sim.effects.stochastic import NoiseModel
 
     if plan == "device":
         return None, {}
     kw, extra = {}, {}
-    for sensor, (unit_q, unit_n, unit_k, unit_r) in (("gyro", ("gyro_q_rad", "gyro_n_radps_per_rthz",
-                                                               "gyro_k_radps_per_rts", "gyro_r_radps2")),
-                                                      ("accel", ("accel_q_mps", "accel_n_mps2_per_rthz",
-                                                                 "accel_k_mps2_per_rts", "accel_r_mps3"))):
-        n = grade_noise[sensor]
+    short = duration_s / 6.0
+    for sensor, names in (("gyro", ("gyro_q_rad", "gyro_k_radps_per_rts", "gyro_r_radps2")),
+                          ("accel", ("accel_q_mps", "accel_k_mps2_per_rts", "accel_r_mps3"))):
+        p = device_noise[sensor]
         ex = {}
         if plan == "extra_terms":
-            # crossing taus with the white noise: Q at 3Q^2/tau^2 = N^2/tau, R at R^2 tau^2 / 2 = N^2 / tau,
-            # K at K^2 tau / 3 = N^2 / tau; log-uniform so a term ranges from invisible to dominant
-            tq = 10 ** rng.uniform(np.log10(0.005), np.log10(0.2))
-            tr = 10 ** rng.uniform(np.log10(duration_s / 30), np.log10(duration_s))
-            ex["Q"] = n * math.sqrt(tq / 3.0)
-            ex["R"] = n * math.sqrt(2.0 / tr**3)
-            kw[unit_q], kw[unit_r] = ex["Q"], ex["R"]
+            tq = 10 ** rng.uniform(np.log10(0.005), np.log10(0.1))
+            ex["Q"] = tq * math.sqrt(float(p.avar(tq)) / 3.0)  # 3 Q^2 / tau^2
+            tr = 10 ** rng.uniform(np.log10(short / 16), np.log10(duration_s / 8))
+            ex["R"] = math.sqrt(2.0 * float(p.avar(tr))) / tr  # R^2 tau^2 / 2
+            kw[names[0]], kw[names[2]] = ex["Q"], ex["R"]
             if sensor == "accel":
-                tk = 10 ** rng.uniform(np.log10(duration_s / 30), np.log10(duration_s))
-                ex["K"] = n * math.sqrt(3.0) / tk
-                kw[unit_k] = ex["K"]
+                tk = 10 ** rng.uniform(np.log10(short / 16), np.log10(duration_s / 8))
+                ex["K"] = math.sqrt(3.0 * float(p.avar(tk)) / tk)  # K^2 tau / 3
+                kw[names[1]] = ex["K"]
         else:  # markov
             tc = 10 ** rng.uniform(np.log10(1.0), np.log10(duration_s / 20))
             ratio = 10 ** rng.uniform(0.0, 1.5)  # theta_M = 2 sigma^2 T_c = ratio x N^2
-            sig = n * math.sqrt(ratio / (2.0 * tc))
+            sig = p.n * math.sqrt(ratio / (2.0 * tc))
             kw[f"{sensor}_gm_sigma_{'radps' if sensor == 'gyro' else 'mps2'}"] = sig
             kw[f"{sensor}_gm_tau_s"] = tc
             ex["markov_q"] = sig * math.sqrt(2.0 / tc)
@@ -113,7 +117,7 @@ def _extra_effect(grade_noise: dict, duration_s: float, rng: np.random.Generator
     return NoiseModel(**kw), extra
 
 
-def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 6, grade: str | None = None,
+def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, grade: str | None = None,
                 plan: str | None = None) -> dict:
     """One device, ``cycles`` power-cycled static runs through the allan_deviation and repeatability stages'
     computations; returns the trial outputs :func:`score_noise` scores (tables and truths)."""
@@ -131,8 +135,7 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 6, 
     plan = plan or PLANS[(k // len(GRADES)) % len(PLANS)]
     dev = example_device(f"NC{seed}-{k:05d}", grade, seed=seed)
     rng = np.random.default_rng([seed, k, 952])
-    gnoise = {"gyro": dev.gyro.noise[0].n, "accel": dev.accel.noise[0].n}
-    effect, extra = _extra_effect(gnoise, duration_s, rng, plan)
+    effect, extra = _extra_effect({"gyro": dev.gyro.noise[0], "accel": dev.accel.noise[0]}, duration_s, rng, plan)
     chain = DEFAULT_EFFECTS if effect is None else sensor_chain([effect])
     fs = dev.sample_rate_hz
     site = SiteSpec()
@@ -149,10 +152,10 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 6, 
             t = {"Q": math.hypot(p.q, ex.get("Q", 0.0)), "N": math.sqrt(p.n**2 + lsb**2 / (12.0 * fs)), "B": p.b,
                  "K": math.hypot(p.k, ex.get("K", 0.0)), "R": math.hypot(p.r, ex.get("R", 0.0))}
             if "markov_q" in ex:
-                t["markov_q"] = ex["markov_q"]
+                t["markov_q"], t["markov_tc"] = ex["markov_q"], ex["markov_tc"]
             t["bias_repeatability"] = math.hypot(sb, ss * inputs[sensor][i])
             truth[f"{sensor}_{a}_{'radps' if sensor == 'gyro' else 'mps2'}"] = t
-    for c in range(cycles):
+    for c in range(cycles + 1):
         dur = duration_s if c == 0 else duration_s / 6.0
         tr = dev.for_power_cycle(c, seed)
         sim = simulate_run(tr, "static_long", f"pc{c:02d}-static", power_cycle_index=c, seed=seed * 1000 + k,
@@ -162,10 +165,11 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 6, 
                 "power_cycle_index": ing.manifest.power_cycle_index}
         tables, _, _, results, fits = allan_tables(f"{dev.device_id}__{ing.manifest.run_id}", ing.imu, meta)
         run = {"run_id": ing.manifest.run_id, "duration_s": dur, "noise": tables["noise"]}
-        if plan == "markov":  # imulab allan --markov (octave taus, as its default)
+        if plan == "markov" and c == 0:  # imulab allan --markov (octave taus, as its default) on the long run
             run["noise_markov"] = noise_table(fit_all(results, markov=True))
         runs.append(run)
-        static.append(tables["static_terms"])
+        if c > 0:  # the equal-length power-cycled runs (a rate ramp offsets the mean of runs of other lengths)
+            static.append(tables["static_terms"])
     rep = static_repeatability(pd.concat(static, ignore_index=True))
     return {"seed": seed, "trial": k, "grade": grade, "plan": plan, "truth": truth, "runs": runs,
             "static_terms": pd.concat(static, ignore_index=True), "static_repeatability": rep}
@@ -209,9 +213,11 @@ def score_noise(trial_outputs: dict) -> list[dict]:
     for i, run in enumerate(o["runs"]):
         label = "long" if i == 0 else "short"
         if "noise_markov" in run:
-            rows += _term_rows(o, run["noise_markov"], label, ":markov_fit", TERMS + ("markov_q",))
-        else:
+            rows += _term_rows(o, run["noise_markov"], label, ":markov_fit", TERMS + ("markov_q", "markov_tc"))
+        elif o["plan"] != "markov":  # the stage's fit has no Markov term: its model is not the truth there
             rows += _term_rows(o, run["noise"], label, "", TERMS)
+    if o["plan"] == "markov":  # the stage's per-run bias standard errors come from a model without the GM term
+        return rows
     rep = o["static_repeatability"]
     st = o["static_terms"]
     for r in rep[rep["quantity"] == "bias_repeatability"].itertuples():
@@ -219,7 +225,7 @@ def score_noise(trial_outputs: dict) -> list[dict]:
         lo, hi = r.noise_corrected_ci_low, r.noise_corrected_ci_high
         if not (np.isfinite(lo) and np.isfinite(hi)):
             continue
-        g = st[st["channel"] == r.channel]
+        g = st[st["channel"] == r.channel]  # the runs the repeatability used
         v, se2 = g["bias"].to_numpy(float), g["bias_stderr"].to_numpy(float) ** 2
         q = len(v)
         s2 = float(np.var(v, ddof=1))
@@ -238,15 +244,33 @@ def _trial_rows(args) -> list[dict]:
     return score_noise(noise_trial(seed, k, duration_s, cycles))
 
 
-def run(seed: int, trials: int, workers: int = 1, duration_s: float = 1200.0, cycles: int = 6) -> pd.DataFrame:
+def run(seed: int, trials: int, workers: int = 1, duration_s: float = 1200.0, cycles: int = 5,
+        budget_s: float | None = None) -> pd.DataFrame:
+    """Rows of trials 0..trials-1; with ``budget_s``, trials not started within the budget are left out (every
+    trial that is scored ran to its end; the number done is the trial count reported)."""
     jobs = [(seed, k, duration_s, cycles) for k in range(trials)]
     recs: list[dict] = []
+    t0 = time.time()
     if workers > 1:
+        from concurrent.futures import FIRST_COMPLETED, wait
+
         with ProcessPoolExecutor(workers) as ex:
-            for r in ex.map(_trial_rows, jobs, chunksize=1):
-                recs.extend(r)
+            pending, it = set(), iter(jobs)
+            while True:
+                while len(pending) < 2 * workers and (budget_s is None or time.time() - t0 < budget_s):
+                    j = next(it, None)
+                    if j is None:
+                        break
+                    pending.add(ex.submit(_trial_rows, j))
+                if not pending:
+                    break
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    recs.extend(f.result())
     else:
         for j in jobs:
+            if budget_s is not None and time.time() - t0 >= budget_s:
+                break
             recs.extend(_trial_rows(j))
     return pd.DataFrame(recs)
 
@@ -308,8 +332,8 @@ def markdown(tabs: dict, meta: dict) -> str:
     two = fam[~fam["family"].str.endswith(":bound")]
     lines = [
         "# Noise-term and repeatability coverage (Monte Carlo, pipeline code path)", "",
-        f"{meta['trials']} trials (seed {meta['seed']}, {meta['cycles']} power-cycled static runs per trial: one of "
-        f"{meta['duration_s']:g} s, the others {meta['duration_s'] / 6:g} s; 100 Hz), {int(fam['n'].sum())} scored "
+        f"{meta['trials']} trials (seed {meta['seed']}; per trial one static run of {meta['duration_s']:g} s and "
+        f"{meta['cycles']} power-cycled static runs of {meta['duration_s'] / 6:g} s; 100 Hz), {int(fam['n'].sum())} scored "
         f"intervals, {meta['seconds']} s. Generated by `{meta['command']}`.", "",
         f"Targets: two-sided 95 % intervals {TARGET_COVERAGE[0]:.2f}-{TARGET_COVERAGE[1]:.2f} with |mean z| < "
         f"{TARGET_MEAN_Z} and z sd {TARGET_SD_Z[0]}-{TARGET_SD_Z[1]} (z of a noise term on the log scale, "
@@ -339,16 +363,20 @@ def main(argv=None) -> int:
     ap.add_argument("--trials", type=int, default=60)
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--duration", type=float, default=1200.0, help="length of the first static run [s]")
-    ap.add_argument("--cycles", type=int, default=6, help="power-cycled static runs per trial")
+    ap.add_argument("--cycles", type=int, default=5, help="equal-length power-cycled static runs per trial")
+    ap.add_argument("--budget-s", type=float, default=None, help="start no trial after this many seconds")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "noise_coverage")
     ap.add_argument("--records", action="store_true", help="also write every row to <out>.records.csv")
     args = ap.parse_args(argv)
     t0 = time.time()
-    df = run(args.seed, args.trials, args.workers, args.duration, args.cycles)
+    df = run(args.seed, args.trials, args.workers, args.duration, args.cycles, args.budget_s)
+    done = int(df["trial"].nunique())
     tabs = summarize(df)
     cmd = (f"python benchmarks/coverage_noise.py --seed {args.seed} --trials {args.trials} --workers {args.workers} "
            f"--duration {args.duration:g} --cycles {args.cycles}")
-    meta = {"seed": args.seed, "trials": args.trials, "duration_s": args.duration, "cycles": args.cycles,
+    if args.budget_s is not None:
+        cmd += f" --budget-s {args.budget_s:g}"
+    meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "duration_s": args.duration, "cycles": args.cycles,
             "seconds": round(time.time() - t0, 1), "command": cmd}
     text = markdown(tabs, meta)
     args.out.parent.mkdir(parents=True, exist_ok=True)

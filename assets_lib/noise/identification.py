@@ -122,8 +122,28 @@ def avar_correlation(
     tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
 ) -> np.ndarray:
     """Large-n Gaussian correlation of overlapping AVAR estimates at a model ([VACCARO2012], generalised)."""
+    cov = avar_covariance_large_n(tau_s, n_terms, theta, rate_hz, tc_s)
+    d = np.sqrt(np.diag(cov))
+    R = cov / np.outer(d, d)
+    np.fill_diagonal(R, 1.0)
+    return R
+
+
+def avar_covariance_large_n(
+    tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
+) -> np.ndarray:
+    """Large-n Gaussian covariance of overlapping AVAR estimates of sampled rate data at a model.
+
+    With d^j_i the second differences at tau_j = m_j tau0 (A_j = mean(d^j^2) / 2), for a Gaussian model
+    Cov(A_j, A_k) ~ min(n_j, n_k) / (n_j n_k tau0) * int_0^{fs/2} S(f)^2 |H_j(f)|^2 |H_k(f)|^2 df
+    (Isserlis and Parseval; [VACCARO2012] generalised to the [IEEE952] mixture), S the two-sided rate PSD and
+    |H_m(f)|^2 = 4 sin^4(pi f m tau0) / (m sin(pi f tau0))^2 the transfer of m-sample averages differenced at lag
+    m: the transfer of sampled data, exact at m = 1 where the continuous 4 sin^4(pi f tau) / (pi f tau)^2 (and
+    [GREENHALL2003]'s filter F = m) overstate the white-noise degrees of freedom by 17 %.
+    """
     tau = np.asarray(tau_s, dtype=float)
     tau0 = 1.0 / rate_hz
+    m = np.maximum(np.rint(tau / tau0), 1.0)
     f_lo = 1e-3 / tau.max()
     f_hi = 0.5 * rate_hz
     c = 8.0  # above f tau = c the sin^4 factor is replaced by its mean 3/8
@@ -135,7 +155,7 @@ def avar_correlation(
     u = np.pi * np.outer(f, tau)  # (grid, taus)
     fast = np.outer(f, tau) > c
     s4 = np.where(fast, 3.0 / 8.0, np.sin(u) ** 4)
-    G = 4.0 * s4 / u**2
+    G = 4.0 * s4 / (np.outer(np.sin(np.pi * f * tau0), m)) ** 2
     Wv = (S**2 * df)[:, None]
     I = (G * Wv).T @ G
     # diagonal: the mean of sin^8 is 35/128, not (3/8)^2
@@ -143,11 +163,7 @@ def avar_correlation(
     I[np.diag_indices_from(I)] = diag
     n = np.asarray(n_terms, dtype=float)
     nmin = np.minimum.outer(n, n)
-    cov = nmin / np.outer(n, n) * I
-    d = np.sqrt(np.diag(cov))
-    R = cov / np.outer(d, d)
-    np.fill_diagonal(R, 1.0)
-    return R
+    return nmin / np.outer(n, n) * I / tau0
 
 
 def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarray, n_phase: int) -> np.ndarray:
@@ -463,8 +479,13 @@ def fit_noise(
         model = np.where(model > 0, model, a)
         edf = _edf_mix(tau, np.clip(parts, 0, None), alphas, m, n_phase)
         th = {t: float(v) for t, v in zip(term_list, theta_vec)}
-        R = avar_correlation(tau, n, th, res.rate_hz, tc)
-        d = np.sqrt(2.0 * model**2 / edf)
+        C = avar_covariance_large_n(tau, n, th, res.rate_hz, tc)
+        dl = np.sqrt(np.diag(C))
+        R = C / np.outer(dl, dl)
+        np.fill_diagonal(R, 1.0)
+        # variance: [GREENHALL2003] (finite-length effects at long taus) unless the sampled-data large-n variance
+        # is larger (m = 1: white rate samples have EDF 2n/3, Greenhall's filter F = m gives 0.78 n)
+        d = np.maximum(np.sqrt(2.0 * model**2 / edf), dl)
         return _regularise(R * np.outer(d, d))
 
     # start: diagonal weights from the measured points ([NIST1065] EDF of the identified noise)
@@ -500,11 +521,27 @@ def fit_noise(
             if delta == 0.0:
                 break
     z2 = stats.norm.ppf(0.5 + ci_level / 2.0)
+    profile = None
+    if markov:
+        # T_c by profile GLS chi2 on a fine grid (the coarse grid above only seeded the weights); the Markov
+        # intervals below carry T_c's uncertainty: the profile set chi2(T_c) <= min + chi2_1(ci_level)
+        fine = np.geomspace(tau.min() * 2, tau.max() / 2, 97)
+        chis = np.array([_nn_gls(design(t_, f0), a, V)[1] for t_ in fine])
+        tc = float(fine[int(np.argmin(chis))])
+        Xd = design(tc, f0)
+        # the GLS chi2 differences are scaled by the dispersion chi2_min / dof when it exceeds 1 (quasi-likelihood
+        # profile: weights that understate the scatter would make the T_c set too narrow)
+        disp = max(1.0, float(chis.min()) / max(len(a) - Xd.shape[1] - 1, 1))
+        profile = fine[chis <= chis.min() + disp * stats.chi2.ppf(ci_level, 1)]
     theta, rss, cov, sd_all, bound_theta = _significant_terms(Xd, a, V, z2)
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
         name = {"M": "markov_q", "S": "sin_amplitude"}.get(t, t)
+        if t == "M" and profile is not None:
+            params.append(_markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level,
+                                          k not in bound_theta, th, sd, tc, bound_theta.get(k)))
+            continue
         if k in bound_theta:
             ub_val = _theta_to_param(t, bound_theta[k], tc)
             params.append(_param(name, math.nan, 0.0, ub_val, sensor, "fit", True, ci_level))
@@ -528,7 +565,9 @@ def fit_noise(
                 )
             )
     if markov:
-        params.append(_param("markov_tc", tc, tc, tc, sensor, "fit", False, ci_level))
+        # profile-likelihood set of T_c (an interval when the Markov term is supported, else the grid searched)
+        tlo, thi = (float(profile.min()), float(profile.max())) if profile is not None else (tc, tc)
+        params.append(_param("markov_tc", tc, tlo, thi, sensor, "fit", False, ci_level))
     if sinusoid:
         params.append(_param("sin_freq", f0, f0, f0, sensor, "fit", False, ci_level))
     slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level, min_edf=min_edf, tau_min_s=tau_min_s,
@@ -562,6 +601,34 @@ def fit_noise(
         outside_tau_ranges=outside,
         warnings=tuple(warns),
     )
+
+
+def _satterthwaite(th: float, sd: float, ci_level: float) -> tuple[float, float]:
+    """theta_hat ~ theta chi2_nu / nu with nu = 2 theta^2 / sd^2 ([SATTERTHWAITE1946]): interval on theta."""
+    nu = 2.0 * th**2 / sd**2
+    return (nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu), nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu))
+
+
+def _markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level, supported, th, sd, tc, bound):
+    """markov_q = sqrt(theta_M) / T_c with T_c's uncertainty: the union over the profile set of T_c of the
+    Satterthwaite intervals at each T_c (a profile / projection interval); an upper bound (the largest over the
+    set) when the term is not supported."""
+    los, his, ubs = [], [], []
+    for t_ in profile:
+        th_t, rss_t, cov_t, sd_t, b_t = _significant_terms(design(t_, f0), a, V, z2)
+        if k in b_t:
+            ubs.append(_theta_to_param("M", b_t[k], t_))
+        else:
+            lo, hi = _satterthwaite(float(th_t[k]), float(sd_t[k]), ci_level)
+            los.append(_theta_to_param("M", lo, t_))
+            his.append(_theta_to_param("M", hi, t_))
+            ubs.append(his[-1])
+    if not supported or len(los) < len(profile):  # unsupported somewhere in the T_c set: lower limit 0
+        ub = max(ubs + ([_theta_to_param("M", bound, tc)] if bound is not None else []))
+        return _param("markov_q", math.nan, 0.0, ub, sensor, "fit", True, ci_level)
+    val = _theta_to_param("M", th, tc)
+    lo, hi = min(los), max(his)
+    return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th))
 
 
 def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float):
