@@ -7,13 +7,21 @@ Estimator: the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The 
 points are heteroscedastic and strongly correlated across tau, so they are fitted by non-negative generalised
 least squares with their covariance V evaluated at the current model (iterated):
 - variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from [GREENHALL2003] at the model's local
-  power-law exponent (interpolated between integer alphas);
+  power-law exponent (interpolated between integer alphas), or the sampled-data large-n variance below when
+  that is larger (m = 1: white rate samples give EDF 2n/3, Greenhall's filter F = m 0.78 n);
 - correlations from the large-n Gaussian approximation
-  Cov(s2_j, s2_k) ~ min(n_j, n_k) / (2 n_j n_k tau0) * integral S(f)^2 |G_j(f)|^2 |G_k(f)|^2 df,
-  |G_tau(f)|^2 = 4 sin^4(pi f tau)/(pi f tau)^2, S the model's two-sided rate PSD (the generalisation of
-  [VACCARO2012] to the [IEEE952] mixture).
-Each theta_k gets a Wald covariance (X' V^-1 X)^-1 and a Satterthwaite chi-square interval (theta is a variance);
-a term whose Wald interval reaches zero is reported as a one-sided upper bound, not as a number.
+  Cov(s2_j, s2_k) ~ min(n_j, n_k) / (n_j n_k tau0) * integral_0^{fs/2} S(f)^2 |H_j(f)|^2 |H_k(f)|^2 df,
+  |H_m(f)|^2 = 4 sin^4(pi f m tau0)/(m sin(pi f tau0))^2 (sampled rate data), S the model's two-sided rate PSD
+  (the generalisation of [VACCARO2012] to the [IEEE952] mixture).
+Terms the data do not support are eliminated backwards (a term whose two-sided Wald interval reaches zero is
+dropped, the least significant first, and the rest refitted: a boundary term biases its collinear neighbours);
+each kept theta_k gets the active-set Wald covariance (X_A' V^-1 X_A)^-1 ([LAWSON1974]: terms at zero are
+constraints) and a Satterthwaite chi-square interval (theta is a variance); a dropped term is reported as a
+one-sided upper bound (the upper end of its two-sided interval when added alone to the kept terms: the report
+switches between the two without losing coverage, [FELDMAN1998]), not as a number. The Markov correlation time
+comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
+interval is the union of its intervals over that set. benchmarks/coverage_noise.py measures the coverage of
+every printed interval.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
 when terms overlap ([GUERRIER2016]) and benchmarks/mc_noise_id.py measures by how much.

@@ -19,7 +19,7 @@ def command(paths, csv_path, runs_csv, confidence):
     Every run is ingested (validated, read-only); per channel its mean is the turn-on bias (standard error from
     the fitted noise model at the record length) and its Allan fit gives N and B. The table gives the standard
     deviation over runs (seed 000 eq. 23) with a chi-square interval and the value corrected for the per-run
-    estimation noise. At least two runs are needed.
+    estimation noise with its interval (noise_corrected_ci_low/high). At least two runs are needed.
     """
     import pandas as pd
 
