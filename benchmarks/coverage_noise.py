@@ -318,6 +318,14 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
         t = pd.DataFrame(rows)
         t["meets"] = [meets(r) for r in t.to_dict("records")]
         tabs[name] = t
+    # every printed interval of a term, two-sided or [0, bound]: how often what is printed contains the truth
+    term = df.assign(family=df["family"].str.replace(r":bound$", "", regex=True))
+    rows = []
+    for f, d in term.groupby("family"):
+        c = clustered(d.assign(z=np.nan))
+        rows.append({"family": f, "n": c["n"], "bound_share": float((d["kind"] == "upper_bound").mean()),
+                     "coverage": c["coverage"], "coverage_se": c["coverage_se"]})
+    tabs["term_all_reports"] = pd.DataFrame(rows)
     return tabs
 
 
@@ -346,6 +354,10 @@ def markdown(tabs: dict, meta: dict) -> str:
     for r in fam.itertuples():
         lines.append(f"| {r.family} | {r.n} | {_fmt(r.coverage, r.coverage_se)} | "
                      f"{_fmt(r.mean_z, r.mean_z_se, '{:+.3f}')} | {_fmt(r.sd_z, r.sd_z_se)} | {'yes' if r.meets else 'no'} |")
+    lines += ["", "Every printed interval of a term (two-sided, or [0, bound]): share of bounds and coverage of the truth:",
+              "", "| term | n | bound share | coverage |", "|---|---:|---:|---:|"]
+    for r in tabs["term_all_reports"].itertuples():
+        lines.append(f"| {r.family} | {r.n} | {r.bound_share:.3f} | {_fmt(r.coverage, r.coverage_se)} |")
     for name, col in (("family_grade", "grade"), ("family_plan", "plan"), ("family_run", "run")):
         lines += ["", f"Per family and {col}:", "", f"| family | {col} | n | coverage | mean z | sd z | meets |",
                   "|---|---|---:|---:|---:|---:|---|"]
