@@ -16,15 +16,45 @@ _HEADLINE = [
 ]
 
 
-def headline_coefficients(st: VersionedStore) -> pd.DataFrame:
-    """Latest run's headline coefficients per device (value +- stderr in lab units), one row per device/axis."""
+def record_statuses(st: VersionedStore) -> dict[tuple[str, str], tuple[str, str]]:
+    """(device, run id) -> (status, reasons) of every record in the devices' current ``calibration_record``."""
+    import json
+
+    out = {}
+    for dev in st.partitions("calibration_record"):
+        for f in sorted(st.version_dir("calibration_record", dev).glob("*.json")):
+            if f.name == "meta.json":
+                continue
+            try:
+                c = json.loads(f.read_text()).get("content", {})
+            except (OSError, ValueError):
+                continue
+            if c.get("status") is not None:
+                out[(dev, f.stem)] = (str(c["status"]), "; ".join(map(str, c.get("status_reasons") or [])))
+    return out
+
+
+def headline_coefficients(st: VersionedStore, skipped: list[str] | None = None) -> pd.DataFrame:
+    """Latest run's headline coefficients per device (value +- stderr in lab units), one row per device/axis.
+    Runs whose calibration record is not valid are skipped (the latest valid run is shown); each skip is
+    appended to ``skipped`` as one line naming the run and the record's reasons."""
+    status = record_statuses(st)
     rows = []
     for asset, sensor, coef in _HEADLINE:
-        latest: dict[str, str] = {}
+        runs: dict[str, list[str]] = {}
         for k in st.partitions(asset):
-            dev = k.split("__", 1)[0]
-            latest[dev] = max(latest.get(dev, k), k)
-        for dev, k in sorted(latest.items()):
+            runs.setdefault(k.split("__", 1)[0], []).append(k)
+        for dev, keys in sorted(runs.items()):
+            for k in sorted(keys, reverse=True):
+                st_, why = status.get((dev, k.split("__", 1)[1]), ("valid", ""))
+                if st_ == "valid":
+                    break
+                if skipped is not None:
+                    line = f"{dev} {k.split('__', 1)[1]}: record {st_} ({why or 'no reason given'}); not shown"
+                    if line not in skipped:
+                        skipped.append(line)
+            else:
+                continue  # no valid run of this device for this coefficient
             c = st.read(asset, k, "coefficients")
             c = c[(c.sensor == sensor) & (c.coefficient == coef)]
             for _, r in c.iterrows():
@@ -45,10 +75,13 @@ def print_outputs(store_dir: Path, echo=print) -> None:
         parts = st.partitions(asset)
         if parts:
             echo(f"  {asset:<26} {len(parts):>4} partitions")
-    head = headline_coefficients(st)
+    skipped: list[str] = []
+    head = headline_coefficients(st, skipped)
     if len(head):
-        echo("\nheadline coefficients (latest run per device; value +- standard error):")
+        echo("\nheadline coefficients (latest run per device with a valid record; value +- standard error):")
         echo(head.drop(columns=[c for c in ("run",) if c in head]).to_string(index=False))
+    for line in skipped:
+        echo(f"  skipped, invalid record: {line}")
     for dev in st.partitions("calibration_record"):
         d = st.version_dir("calibration_record", dev)
         certs = sorted(d.glob("*.html"))

@@ -18,7 +18,7 @@ import pandas as pd
 from assets_lib.stages.engine import Outcome, StageGraph, StageSpec, compute_partition
 from assets_lib.store import FLEET_KEY, VersionedStore
 from pipelines.partitions import captures, devices
-from pipelines.resources import LabArchive, ParquetStore
+from pipelines.resources import LabArchive, ParquetStore, WorkspaceLock
 
 
 def _png_md(title: str, png: bytes) -> str:
@@ -75,7 +75,8 @@ def stage_asset(graph: StageGraph, spec: StageSpec) -> dg.AssetsDefinition:
 
     @dg.asset(name=spec.name, group_name=spec.group, code_version=spec.code_version, deps=deps, kinds=set(spec.kinds),
               description=spec.description, **_asset_kwargs(spec.level))
-    def _asset(context: dg.AssetExecutionContext, store: ParquetStore, archive: LabArchive) -> dg.MaterializeResult:
+    def _asset(context: dg.AssetExecutionContext, store: ParquetStore, archive: LabArchive,
+               workspace_lock: WorkspaceLock) -> dg.MaterializeResult:  # held for the run: see WorkspaceLock
         return run_stage(context, graph, spec, store.store, archive.archive)
 
     return _asset

@@ -22,7 +22,8 @@ import os
 
 from dagster_celery import celery_executor
 
-from pipelines.definitions import build_definitions
+from pipelines.location import build_definitions, default_paths
+from pipelines.resources import WorkspaceLock
 
 
 def celery_config() -> dict:
@@ -36,4 +37,6 @@ def celery_config() -> dict:
     }
 
 
-defs = build_definitions(executor=celery_executor.configured(celery_config()))
+# steps run on other machines: a local flock would not exclude anything there (pipelines.resources.WorkspaceLock)
+defs = build_definitions(executor=celery_executor.configured(celery_config()),
+                         extra_resources={"workspace_lock": WorkspaceLock(store_dir=default_paths()[1], enabled=False)})

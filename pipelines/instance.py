@@ -3,42 +3,37 @@
 - ``open_instance``: the persistent SQLite instance in a Dagster home, created (``dagster.yaml`` and every
   storage's schema) under an exclusive file lock, so two processes starting on a new folder cannot both create
   the schema (two alembic heads break the instance for good).
-- ``acquire_run_lock`` / ``run_lock``: an exclusive lock on the Dagster home and the store for a whole
-  ``imulab run``: a second run waits for the first (printing who holds the lock) or, past its timeout, refuses
-  with a clear message. Locks are ``flock`` locks (``filelock``): the kernel releases them when the holder dies,
-  so a killed run never leaves a stale lock.
+- ``acquire_run_lock`` / ``run_lock``, ``note_archive`` / ``recorded_archive``: in ``pipelines.workspace`` (no
+  Dagster import there), re-exported here.
 - ``fail_abandoned_runs``: runs launched in process by imulab whose process is gone (killed) stay STARTED in
   Dagster forever; at the next start, holding the lock, they are marked failed with the reason.
-- ``note_archive`` / ``recorded_archive``: the store remembers the archive it was computed from (``ARCHIVE``), so
-  ``imulab verify`` finds it from any working directory.
 """
 
 from __future__ import annotations
 
-import contextlib
-import json
 import os
 import socket
-import time
 from pathlib import Path
-from typing import Callable, Iterator
 
 import dagster as dg
-from filelock import FileLock, Timeout
+from filelock import FileLock
 
-RUN_LOCK = ".imulab-run.lock"
-RUN_OWNER = ".imulab-run.owner.json"
+# the run lock lives in a module without Dagster (an unchanged archive answers without importing it); re-exported
+from pipelines.workspace import (  # noqa: F401
+    DEFAULT_LOCK_TIMEOUT_S,
+    RUN_LOCK,
+    RUN_OWNER,
+    RunLockedError,
+    acquire_run_lock,
+    note_archive,
+    recorded_archive,
+    run_lock,
+)
+
 CREATE_LOCK = ".imulab-instance.lock"
-ARCHIVE_FILE = "ARCHIVE"
 #: tags on every run imulab launches in process: who ran it (to recognise a killed run later)
 PID_TAG, HOST_TAG = "imulab/pid", "imulab/host"
-#: default wait for a run lock (s); IMULAB_LOCK_TIMEOUT_S overrides it (0: refuse at once)
-DEFAULT_LOCK_TIMEOUT_S = 3600.0
 ACTIVE = (dg.DagsterRunStatus.STARTED, dg.DagsterRunStatus.STARTING, dg.DagsterRunStatus.CANCELING)
-
-
-class RunLockedError(RuntimeError):
-    """Another ``imulab run`` holds the workspace and did not finish within the timeout."""
 
 
 def process_tags() -> dict[str, str]:
@@ -67,63 +62,6 @@ def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterIn
     return instance
 
 
-def _owner(path: Path) -> str:
-    try:
-        o = json.loads(path.read_text())
-        return f"pid {o['pid']} on {o['host']}, started {o['started_utc']}"
-    except (OSError, ValueError, KeyError):
-        return "owner unknown"
-
-
-def acquire_run_lock(dagster_home: Path, store: Path | None = None, timeout_s: float | None = None,
-                     echo: Callable[[str], None] = print) -> contextlib.ExitStack:
-    """Hold the workspace (the Dagster home, then the store) for one run; returns the held locks (``close()``
-    releases them; so does the end of the process). Waits up to ``timeout_s`` (default $IMULAB_LOCK_TIMEOUT_S or
-    3600 s; 0 refuses at once) and raises ``RunLockedError`` naming the holder."""
-    if timeout_s is None:
-        timeout_s = float(os.environ.get("IMULAB_LOCK_TIMEOUT_S", DEFAULT_LOCK_TIMEOUT_S))
-    dirs = [Path(dagster_home).resolve()]
-    if store is not None and Path(store).resolve() != dirs[0]:
-        dirs.append(Path(store).resolve())
-    stack = contextlib.ExitStack()
-    try:
-        deadline = time.monotonic() + timeout_s
-        for d in dirs:  # always home before store: two runs can never wait on each other in a cycle
-            d.mkdir(parents=True, exist_ok=True)
-            lock = FileLock(str(d / RUN_LOCK))
-            try:
-                lock.acquire(timeout=0)
-            except Timeout:
-                left = max(0.0, deadline - time.monotonic())
-                if left <= 0:
-                    raise RunLockedError(f"another imulab run is using {d} ({_owner(d / RUN_OWNER)}); refusing to "
-                                         f"start (IMULAB_LOCK_TIMEOUT_S={timeout_s:g})") from None
-                echo(f"another imulab run is using {d} ({_owner(d / RUN_OWNER)}); waiting for it to finish "
-                     f"(up to {left:.3g} s)")
-                try:
-                    lock.acquire(timeout=left)
-                except Timeout:
-                    raise RunLockedError(f"another imulab run is still using {d} ({_owner(d / RUN_OWNER)}) after "
-                                         f"{timeout_s:g} s; try again when it has finished") from None
-            stack.callback(lock.release)
-            tmp = d / f"{RUN_OWNER}.{os.getpid()}"
-            tmp.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                                       "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}))
-            os.replace(tmp, d / RUN_OWNER)
-    except BaseException:
-        stack.close()
-        raise
-    return stack
-
-
-@contextlib.contextmanager
-def run_lock(dagster_home: Path, store: Path | None = None, timeout_s: float | None = None,
-             echo: Callable[[str], None] = print) -> Iterator[None]:
-    """``acquire_run_lock`` as a context manager."""
-    with acquire_run_lock(dagster_home, store, timeout_s, echo):
-        yield
-
-
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -150,20 +88,3 @@ def fail_abandoned_runs(instance: dg.DagsterInstance) -> list[str]:
                                         "(killed or crashed); marked failed by the next imulab run")
         marked.append(run.run_id)
     return marked
-
-
-def note_archive(store: Path, landing: Path) -> None:
-    """Remember in the store which archive it is computed from (read by ``imulab verify``)."""
-    store = Path(store)
-    store.mkdir(parents=True, exist_ok=True)
-    tmp = store / f".{ARCHIVE_FILE}.{os.getpid()}"
-    tmp.write_text(str(Path(landing).resolve()) + "\n")
-    os.replace(tmp, store / ARCHIVE_FILE)
-
-
-def recorded_archive(store: Path) -> Path | None:
-    p = Path(store) / ARCHIVE_FILE
-    try:
-        return Path(p.read_text().strip()) if p.is_file() else None
-    except OSError:
-        return None

@@ -149,7 +149,7 @@ def test_openvins_intrinsics_reproduce_the_model(cal, model):
 
 def _c_arrays(text):
     out = {}
-    for name, body in re.findall(r"static const double (\w+)\[3\](?:\[3\])? = \{(.*?)\};", text, flags=re.S):
+    for name, body in re.findall(r"static const double (\w+)\[3\](?:\[3\])? = \{(.*?)\};", text, flags=re.DOTALL):
         out[name.replace("IMULAB_", "")] = np.array([float(v) for v in re.findall(r"[-+0-9.eE]+", body)]).reshape(
             (3, 3) if body.count("{") else (3,))
     out["ACC_ITERATIONS"] = int(re.search(r"#define IMULAB_ACC_ITERATIONS (\d+)", text).group(1))
@@ -233,3 +233,72 @@ def test_imucal_example_session_through_our_apply_and_export(shared_data, tmp_pa
     # sanity: the calibrated static sections read 1 g along the named axis (9.81 in imucal's convention)
     xp = df["part"] == "x_p"
     assert np.median(c.accel_mps2[xp.to_numpy(), 0]) == pytest.approx(9.81, abs=0.02)
+
+
+def test_imulab_ferraris_record_of_imucal_session_calibrates_alike_in_imucal_and_imulab(shared_data, tmp_path):
+    """Real data, imulab's own record: imucal's example session (raw counts, shared/data imucal_example) imported
+    (``imulab import imucal``: counts -> SI by the declared lsb), fitted by imulab's Ferraris path
+    (``calibrate_tablefree`` -> ``coefficient_table``, the ``tablefree_fit`` stage), made into a record, exported
+    to imucal's JSON and loaded by imucal's own loader: imucal's calibrate() and ``imulab apply`` give the same
+    numbers on the whole session. And both agree with imucal's own reference calibration of the session (its
+    example_cal.json) to within what separates the two fits' models."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+    from imucal.management import load_calibration_info
+
+    from assets_lib.apply import calibration_from_record, correct_frame
+    from assets_lib.calibration.tablefree_session import (
+        calibrate_tablefree,
+        coefficient_table,
+    )
+    from raw_schemas.importers import RunMeta, import_run
+    from raw_schemas.readers import ingest_run
+    from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
+
+    d = shared_data / "imucal_example"
+    landing = import_run("imucal", [d / "annotated_session.csv"], tmp_path / "land", RunMeta("bmi160", "ferraris1"),
+                         {"sample_rate_hz": "204.8", "accel_lsb": str(1 / 2048), "gyro_lsb": str(1 / 16.4)})
+    run = ingest_run(landing)
+    res = calibrate_tablefree(run.manifest, run.imu, 9.81)
+    assert res.method == "ferraris"
+    coef = coefficient_table(res, "bmi160", "ferraris1", len(run.imu))
+    rec = make_record(SimpleNamespace(manifest=run.manifest, imu_raw=run.imu), None)
+    rec["content"]["coefficients"] = [
+        {**{k: (None if isinstance(v, float) and not math.isfinite(v) else (v.item() if hasattr(v, "item") else v))
+            for k, v in r.items() if k in ("sensor", "axis", "coefficient", "value", "stderr", "unit", "value_lab",
+                                           "stderr_lab", "unit_lab", "observable", "n_plateaus", "n_samples",
+                                           "method")}, "source": "tablefree_fit"}
+        for r in coef.to_dict(orient="records")]
+    rec = make_record_like(rec)
+    cal = calibration_from_record(rec)
+    assert cal.missing_groups == ("noise",) and len(cal.terms) == 2 * (3 + 3 + 6) + 9
+
+    # imulab apply (the Python API behind the command) on the ingested session
+    ours = correct_frame(cal, run.imu)
+    # imucal, with our export loaded by its own loader, on the same SI data
+    p = tmp_path / "imucal.json"
+    p.write_text(export(cal, "imucal"))
+    theirs = load_calibration_info(p)
+    acc, gyr = run.imu[list(ACCEL_COLUMNS)].to_numpy(float), run.imu[list(GYRO_COLUMNS)].to_numpy(float)
+    a_imucal, g_imucal = theirs.calibrate(acc, gyr, acc_unit="m/s^2", gyr_unit="rad/s")
+    np.testing.assert_allclose(a_imucal, ours[list(ACCEL_COLUMNS)].to_numpy(), rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(g_imucal, ours[list(GYRO_COLUMNS)].to_numpy(), rtol=1e-10, atol=1e-12)
+    # the numbers are a calibration, not the identity: the raw session differs from them
+    assert np.abs(a_imucal - acc).max() > 0.05
+
+    # imucal's own reference calibration of the session (counts -> m/s^2, deg/s): the same accelerations to the
+    # size of what the record's model leaves out (imucal's R rows are unit vectors, our E is R - I: second order
+    # in the misalignments), the same rates up to the rotation-sense convention imucal keeps in R_g's sign
+    # (on the session's counts in the ingested row order: the declared lsb undone)
+    ref = load_calibration_info(d / "example_cal.json")
+    counts_a, counts_g = acc / (9.80665 / 2048), np.degrees(gyr) * 16.4
+    assert np.abs(counts_a - np.round(counts_a)).max() < 1e-6 and len(counts_a) == len(pd.read_csv(d / "annotated_session.csv"))
+    a_ref, g_ref = ref.calibrate(counts_a, counts_g, acc_unit="a.u.", gyr_unit="a.u.")
+    a_ours = ours[list(ACCEL_COLUMNS)].to_numpy()
+    g_ours_dps = np.degrees(ours[list(GYRO_COLUMNS)].to_numpy())
+    misal = max(np.abs(np.asarray(ref.R_a) - np.diag(np.diag(ref.R_a))).max(), 1e-6)
+    assert np.abs(a_ours - a_ref).max() < 10 * misal**2 * 9.81 + 1e-6, (np.abs(a_ours - a_ref).max(), misal)
+    sign = np.sign(np.diag(ref.R_g))
+    scale = np.abs(g_ref).max()
+    assert np.abs(g_ours_dps * sign - g_ref).max() < 1e-3 * scale, np.abs(g_ours_dps * sign - g_ref).max() / scale

@@ -148,3 +148,75 @@ def test_certificate_section_uses_the_device_calibration_at_the_record():
     assert "a-rate" in frag and "a-pos24" in frag and "not calibrated" not in frag
     first = bd.certificate_section([rate, pos], "a-rate", times_s=(60.0,))
     assert "not calibrated at that date: accel" in first
+
+
+def test_certificate_budget_matches_the_fine_strapdown(budget):
+    """The certificate integrates at rest in 2 s steps: within 2 % of 1 s steps (calibrated and uncalibrated)."""
+    cal, _ = budget
+    coarse = bd.certificate_budget(cal, times_s=TIMES).drifts[0]
+    fine = bd.navigation_budget(cal, times_s=TIMES, profiles=("static",)).drifts[0]
+    for f in ("position_calibrated_m", "position_uncalibrated_m", "tilt_calibrated_rad", "tilt_uncalibrated_rad",
+              "heading_calibrated_rad", "heading_uncalibrated_rad"):
+        np.testing.assert_allclose(getattr(coarse, f), getattr(fine, f), rtol=0.02, err_msg=f)
+
+
+def test_certificate_shows_the_budget_and_verify_recomputes_it():
+    """The budget on the certificate: a table and plot from the device calibration at the record's start, embedded
+    as hashed JSON; certificate_problems (imulab verify CERT.html) recomputes every printed value from it."""
+    import json
+
+    from assets_lib.records.canonical import content_sha256
+    from assets_lib.records.certificate import (
+        DEVICE_CALIBRATION_ID,
+        NAV_PLOT,
+        certificate_html,
+        certificate_problems,
+        parse_certificate,
+    )
+
+    def full(rec, run):  # the factory's records lack the plan counts the certificate prints: filled in, re-hashed
+        plan = rec["content"]["test_conditions"]["plan"]
+        steps = run.manifest.plan.steps
+        plan.update(n_steps=len(steps), n_rate_steps=sum(s.kind == "rate" for s in steps),
+                    n_static_steps=sum(s.kind == "static" for s in steps), duration_s=float(run.manifest.plan.end_s))
+        rec["record_sha256"] = content_sha256(rec["content"])
+        return rec
+
+    truth = example_device("TAC-N01", "tactical", 5).for_power_cycle(0, 5)
+    rate = full(*fitted_record(truth, "quick_rate", "a-rate", 1, T0)[:2])
+    pos = full(*fitted_record(truth, "quick_24_position", "a-pos24", 1, T0 + timedelta(hours=1))[:2])
+    cal = bd.certificate_calibration([rate, pos], "a-pos24")
+    assert {r["run_id"] for r in cal.records} == {"a-rate", "a-pos24"}
+    page = certificate_html(pos, {}, cal)
+    rec, problems = certificate_problems(page)
+    assert problems == [] and rec["record_sha256"] == pos["record_sha256"]
+    cert = parse_certificate(page)
+    nav = {k: v[0] for k, v in cert.cells.items() if k.startswith("nav/")}
+    assert len(nav) == 2 * (2 + 3) and NAV_PLOT in cert.plots and cert.plots[NAV_PLOT][:4] == b"\x89PNG"
+    assert "cannot find north" in nav["nav/1/uncalibrated"] and "km" in nav["nav/4/calibrated"]
+    # a certificate without a device calibration has no budget (and still verifies)
+    assert certificate_problems(certificate_html(pos, {}))[1] == []
+    # an edited budget value is caught
+    bad = page.replace(f">{nav['nav/4/calibrated']}<", ">1 m / 1&prime; / 1&prime;<", 1)
+    assert bad != page and any("nav/4/calibrated" in p for p in certificate_problems(bad)[1])
+    # an edited embedded calibration (hash no longer matching) is caught
+    doc = cert.device_calibration
+    edited = json.loads(json.dumps(doc))
+    edited["terms"][0]["stderr"] *= 0.1
+    swap = lambda d: page.replace(json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=False),
+                                  json.dumps(d, sort_keys=True, separators=(",", ":"), ensure_ascii=False))
+    assert swap(edited) != page
+    assert any("device calibration cannot be read" in p for p in certificate_problems(swap(edited))[1])
+    # ... and so is one re-hashed to claim smaller uncertainties for this record's own terms
+    import hashlib
+
+    body = {k: v for k, v in edited.items() if k != "calibration_sha256"}
+    i = next(i for i, t in enumerate(body["terms"]) if t["run_id"] == "a-pos24")
+    body["terms"][i]["value"] += 1e-3
+    body["calibration_sha256"] = hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
+                                                           ensure_ascii=False).encode()).hexdigest()
+    assert any("is not this record's value" in p for p in certificate_problems(swap(body))[1])
+    # the script id the stage and verify share
+    assert f"id='{DEVICE_CALIBRATION_ID}'" in page
+    # an invalid record gets no budget
+    assert bd.certificate_calibration([rate, {**pos, "content": {**pos["content"], "status": "invalid"}}], "a-pos24") is None

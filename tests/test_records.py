@@ -381,6 +381,32 @@ def test_certificate_verifies_and_edits_are_detected(lab, tmp_path):
     assert res.exit_code == 1 and "the embedded record was edited" in res.output
 
 
+def test_certificate_navigation_budget_verifies_against_the_chain(lab, tmp_path):
+    """The certificate's navigation budget (issue 13) is recomputed by verify from the device calibration embedded
+    in the page, and that calibration must be the one the device's verified records assemble at the run's start:
+    a page re-rendered consistently around another calibration fails."""
+    import hashlib
+
+    from assets_lib.apply.model import calibration_from_json
+    from assets_lib.records.certificate import certificate_html, parse_certificate
+
+    cert = lab["vdir"] / f"{RUNS[1]}.html"
+    html = cert.read_text(encoding="utf-8")
+    assert "What the calibration buys in navigation" in html
+    res = _verify(cert, "--shallow")
+    assert res.exit_code == 0 and "ok   navigation budget" in res.output, res.output
+    parsed = parse_certificate(html)
+    body = {k: v for k, v in parsed.device_calibration.items() if k != "calibration_sha256"}
+    body["terms"] = [t for t in body["terms"] if t["coefficient"] != "misalignment_xy"]  # a term dropped
+    body["calibration_sha256"] = hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
+                                                           ensure_ascii=False).encode()).hexdigest()
+    forged = tmp_path / cert.name
+    forged.write_text(certificate_html(parsed.record, parsed.plots, calibration_from_json(body)), encoding="utf-8")
+    assert certificate_problems(forged.read_text(encoding="utf-8"))[1] == []  # self-consistent page ...
+    res = _verify(forged, "--archive", lab["landing"], "--store", lab["store"], "--shallow")
+    assert res.exit_code == 1 and "is not the one the device's records assemble" in res.output, res.output
+
+
 def test_verify_tolerance_follows_each_precision(lab):
     """Issue 10 item 4: recomputed numbers are compared at their own precision (standard error, interval
     half-width): a kernel-sized difference (2.5e-8 relative) passes, a hundredth of an uncertainty does not."""

@@ -173,6 +173,47 @@ def test_clock_offset_recovered(rate_run):
     assert abs(al.clock_drift_ppm) < 4 * al.clock_drift_stderr_ppm + 1e-3  # no clock-rate error simulated
 
 
+@pytest.mark.slow
+def test_clock_drift_unbiased_with_honest_stderr(white_device):
+    """A clock-rate error eps reads as -eps / (1 + eps) (t_imu = (1 + eps) t_table): over seeds at +-200 ppm the
+    mean error is within 3 standard errors of the mean and the z-scores scatter like N(0, 1). The half-record
+    offsets alone (constant delay per half, ramps far from the centroid dropped as outliers) read ~5 % high, the
+    halves at their middles ~20 % low (-158 ppm for -200)."""
+    from assets_lib.sim.effects import EFFECTS, sensor_chain
+
+    errs, zs = [], []
+    for seed, eps in enumerate((2e-4, -2e-4) * 4):
+        chain = sensor_chain([EFFECTS["timebase_error"](clock_rate_error=eps)])
+        _, ing = _ingested(white_device, "quick_rate", 100 + seed, table_clock_offset_s=TABLE_OFFSET_S, effects=chain)
+        al = align_clocks(ing.manifest.plan, ing.imu, ing.table)
+        truth = -1e6 * eps / (1 + eps)
+        errs.append(al.clock_drift_ppm - truth)
+        zs.append(errs[-1] / al.clock_drift_stderr_ppm)
+        assert abs(truth) > 50 * al.clock_drift_stderr_ppm  # a precise statistic, so a 5 % bias would fail
+    errs, zs = np.array(errs), np.array(zs)
+    assert abs(errs.mean()) < 3 * errs.std(ddof=1) / np.sqrt(errs.size)
+    assert np.all(np.abs(zs) < 4) and 0.5 < zs.std(ddof=1) < 1.6
+
+
+def test_segment_run_reuses_a_given_alignment(white_device, rate_run):
+    """``clock_alignment=``: the run's own alignment gives the same table as aligning again; a replicate (same
+    plan, time stamps and table log, other noise) with the recorded alignment keeps the recorded plateau windows."""
+    _, ing = rate_run
+    al = align_clocks(ing.manifest.plan, ing.imu, ing.table)
+    own = segment_run(ing.manifest, ing.imu, ing.table)
+    given = segment_run(ing.manifest, ing.imu, ing.table, clock_alignment=al)
+    pd.testing.assert_frame_equal(own.plateaus, given.plateaus, check_exact=True)
+    assert given.alignment is al
+    _, rep = _ingested(white_device, "quick_rate", 4 + 1000, table_clock_offset_s=TABLE_OFFSET_S)
+    rep = dataclasses.replace(rep, manifest=ing.manifest)  # the replicate of the recorded run
+    r = segment_run(rep.manifest, rep.imu, rep.table, clock_alignment=al)
+    assert r.alignment is al
+    np.testing.assert_array_equal(r.window_step, own.window_step)
+    for c in ["t_start_s", "t_end_s", "revolutions", "commanded_rate_radps"]:
+        np.testing.assert_array_equal(r.plateaus[c].to_numpy(), own.plateaus[c].to_numpy())
+    assert not np.array_equal(r.plateaus["gyro_z_radps_mean"], own.plateaus["gyro_z_radps_mean"])  # other noise
+
+
 def test_clock_offset_found_far_from_prior(white_device):
     """A large offset (table clock 250 s ahead) is still found: the search spans every lag with >= 50 % overlap."""
     run, ing = _ingested(white_device, "quick_rate", 5, table_clock_offset_s=250.0)

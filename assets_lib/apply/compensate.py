@@ -10,7 +10,10 @@ imu_tk's ``T K (y - b)`` nor imucal's ``R^-1 K^-1 (y - b)``: those are the same 
 differently (see ``assets_lib.records.export``).
 
 ``correction_stderr`` propagates the terms' standard errors into the corrected signals (first order, terms
-independent: a record carries standard errors, not covariances), used for z-scores and the navigation budget.
+independent: a record carries standard errors, not covariances), used for z-scores and the navigation budget,
+and adds the bias drift between the calibration and the data (``assets_lib.apply.drift``: bias instability and
+random walk from the calibration's Allan terms over the time span of the data, turn-on repeatability across
+power cycles), an independent input of [GUM] eq. 10.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import pandas as pd
 
+from assets_lib.apply.drift import ApplySpan, BiasDrift, bias_drift
 from assets_lib.apply.model import FAMILY_FIELDS, Calibration, Triad
 
 GYRO_COLUMNS = ("gyro_x_radps", "gyro_y_radps", "gyro_z_radps")
@@ -125,10 +129,58 @@ def sensitivities(cal: Calibration, gyro_radps, accel_mps2) -> Sensitivities:
     return Sensitivities(tuple(keys), dg, da)
 
 
-def correction_stderr(cal: Calibration, gyro_radps, accel_mps2) -> Corrected:
-    """Standard uncertainty of the corrected outputs from the terms' standard errors (GUM eq. 10, independent)."""
-    return sensitivities(cal, gyro_radps, accel_mps2).stderr()
+def drift_of(cal: Calibration) -> BiasDrift:
+    """The calibration's bias-drift terms (``assets_lib.apply.drift.bias_drift``) from its noise rows."""
+    src = next((r["run_id"] for r in cal.records if r.get("test_kind") == "static"), "")
+    return bias_drift(cal.noise, src, cal.turn_on_repeatability)
 
 
-__all__ = ["ACCEL_COLUMNS", "GYRO_COLUMNS", "Corrected", "Sensitivities", "correct", "correct_frame",
-           "correction_stderr", "forward", "perturbed", "sensitivities", "FAMILY_FIELDS"]
+def drift_stderr(cal: Calibration, gyro_radps, accel_mps2, span: ApplySpan | None = None) -> Corrected:
+    """[GUM] eq. 10 term of the bias drift: the corrected outputs' change for a one-sigma drift of each bias axis
+    (central difference, as ``sensitivities``), sigma from ``assets_lib.apply.drift`` over ``span``.
+
+    ``span`` None: every row is taken as the mean of a whole run (T = L), the least drift any other run has:
+    the Allan floor (2 ln2 / pi) B^2 of [IEEE952] C.3."""
+    yg, ya = _as3(gyro_radps, "gyro_radps"), _as3(accel_mps2, "accel_mps2")
+    n = len(yg)
+    drift = drift_of(cal)
+    vg, va = np.zeros_like(yg), np.zeros_like(ya)
+    for sensor in ("gyro", "accel"):
+        var = drift.variance(sensor, span, n)  # (n, 3)
+        for i in range(3):
+            sig = np.sqrt(var[:, i])
+            if not np.any(sig > 0):
+                continue
+            d = float(np.max(sig))
+            hi = correct(perturbed(cal, sensor, "bias", (i,), d), yg, ya)
+            lo = correct(perturbed(cal, sensor, "bias", (i,), -d), yg, ya)
+            scale = (sig / d)[:, None]
+            vg += (0.5 * (hi.gyro_radps - lo.gyro_radps) * scale) ** 2
+            va += (0.5 * (hi.accel_mps2 - lo.accel_mps2) * scale) ** 2
+    return Corrected(np.sqrt(vg), np.sqrt(va))
+
+
+def correction_stderr(cal: Calibration, gyro_radps, accel_mps2, span: ApplySpan | None = None) -> Corrected:
+    """Standard uncertainty of the corrected outputs ([GUM] eq. 10, independent inputs): the terms' standard
+    errors plus the bias drift between the calibration and the data over ``span`` (``drift_stderr``)."""
+    c = sensitivities(cal, gyro_radps, accel_mps2).stderr()
+    d = drift_stderr(cal, gyro_radps, accel_mps2, span)
+    return Corrected(np.hypot(c.gyro_radps, d.gyro_radps), np.hypot(c.accel_mps2, d.accel_mps2))
+
+
+__all__ = [
+    "ACCEL_COLUMNS",
+    "FAMILY_FIELDS",
+    "GYRO_COLUMNS",
+    "ApplySpan",
+    "Corrected",
+    "Sensitivities",
+    "correct",
+    "correct_frame",
+    "correction_stderr",
+    "drift_of",
+    "drift_stderr",
+    "forward",
+    "perturbed",
+    "sensitivities",
+]

@@ -26,7 +26,12 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from assets_lib.apply.compensate import ACCEL_COLUMNS, GYRO_COLUMNS, correct_frame
+from assets_lib.apply.compensate import (
+    ACCEL_COLUMNS,
+    GYRO_COLUMNS,
+    correct_frame,
+    drift_of,
+)
 from assets_lib.apply.model import Calibration, CalibrationError
 from raw_schemas.errors import RawDataError
 from raw_schemas.manifest import load_manifest
@@ -55,6 +60,7 @@ class ImuInput:
     run_id: str | None
     how: str  # 'run folder' | 'raw stream + manifest' | 'canonical SI table'
     sha256: dict[str, str]
+    power_cycle_index: int | None = None  # from the manifest, when there is one
 
 
 def _check_si(imu: pd.DataFrame, name: str) -> None:
@@ -73,7 +79,8 @@ def read_imu_input(path: str | Path, manifest: str | Path | None = None) -> ImuI
     p = Path(path)
     if p.is_dir():
         run = ingest_run(p)
-        return ImuInput(run.imu, str(p), run.manifest.device.id, run.manifest.run_id, "run folder", run.file_sha256)
+        return ImuInput(run.imu, str(p), run.manifest.device.id, run.manifest.run_id, "run folder", run.file_sha256,
+                        run.manifest.power_cycle_index)
     if not p.is_file():
         raise RawDataError(str(p), "", "a run folder, an imu.csv|parquet stream or a canonical SI parquet/csv", "no such file")
     raw = read_stream(p)
@@ -89,7 +96,7 @@ def read_imu_input(path: str | Path, manifest: str | Path | None = None) -> ImuI
         imu = canonical_imu(man, raw, p.name)
         _check_si(imu, p.name)
         return ImuInput(imu, str(p), man.device.id, man.run_id, "raw stream + manifest",
-                        {p.name: sha256_file(p), man_path.name: sha256_file(man_path)})
+                        {p.name: sha256_file(p), man_path.name: sha256_file(man_path)}, man.power_cycle_index)
     need = ("time_s", *GYRO_COLUMNS, *ACCEL_COLUMNS)
     if set(need) <= cols:
         imu = raw
@@ -97,13 +104,13 @@ def read_imu_input(path: str | Path, manifest: str | Path | None = None) -> ImuI
         if bad:
             raise RawDataError(p.name, f"column '{bad[0]}'", "numbers", f"dtype {imu[bad[0]].dtype}")
         _check_si(imu, p.name)
-        dev = run_id = None
+        dev = run_id = cycle = None
         hashes = {p.name: sha256_file(p)}
         if man_path.is_file():
             man = load_manifest(man_path)
-            dev, run_id = man.device.id, man.run_id
+            dev, run_id, cycle = man.device.id, man.run_id, man.power_cycle_index
             hashes[man_path.name] = sha256_file(man_path)
-        return ImuInput(imu, str(p), dev, run_id, "canonical SI table", hashes)
+        return ImuInput(imu, str(p), dev, run_id, "canonical SI table", hashes, cycle)
     raise RawDataError(p.name, "header", f"raw columns {list(RAW_IMU_REQUIRED)} (with a manifest) or canonical SI "
                        f"columns {list(need)}", f"columns {sorted(cols)}")
 
@@ -126,6 +133,23 @@ def check_device(cal: Calibration, data: ImuInput, device: str | None = None, fo
     return []
 
 
+def power_cycle_warnings(cal: Calibration, data: ImuInput) -> list[str]:
+    """Data from another power cycle than the records whose biases are applied: the biases have changed by the
+    device's turn-on repeatability since (``assets_lib.apply.drift``); say by how much, or that it is unknown."""
+    used = {t.run_id for t in cal.terms if t.coefficient == "bias"}
+    cycles = sorted({r.get("power_cycle_index") for r in cal.records if r["run_id"] in used} - {None})
+    if data.power_cycle_index is None or not cycles or data.power_cycle_index in cycles:
+        return []
+    rep = cal.turn_on_repeatability
+    if rep and "gyro" in rep and "accel" in rep:
+        size = ("; turn-on bias repeatability (1 sigma) gyro " + ", ".join(f"{v:.3g}" for v in rep["gyro"])
+                + " rad/s, accel " + ", ".join(f"{v:.3g}" for v in rep["accel"]) + " m/s^2")
+    else:
+        size = "; the turn-on bias repeatability is unknown (records of fewer than 3 power cycles)"
+    return [(f"the data are from power cycle {data.power_cycle_index}, the biases applied from power cycle(s) "
+             f"{cycles}: they differ by the device's turn-on repeatability{size}")]
+
+
 def calibration_metadata(cal: Calibration, data: ImuInput, warnings: list[str], imulab_version: str = "") -> dict:
     """What the output's parquet metadata says about how it was calibrated."""
     return {
@@ -138,6 +162,7 @@ def calibration_metadata(cal: Calibration, data: ImuInput, warnings: list[str], 
         "applied_terms": [f"{t.sensor} {t.axis} {t.coefficient}" for t in cal.terms],
         "missing_groups": list(cal.missing_groups),
         "not_applied": list(cal.not_applied),
+        "bias_drift": drift_of(cal).note,
         "model": "docs/design.md sensor error model, inverted (assets_lib.apply.compensate)",
         "input": {"path": data.path, "how": data.how, "device_id": data.device_id, "run_id": data.run_id,
                   "sha256": data.sha256},
@@ -176,6 +201,7 @@ def apply_file(cal: Calibration, data_path, out, *, manifest=None, device: str |
     warnings = check_device(cal, data, device, force)
     if cal.missing_groups and set(cal.missing_groups) - {"noise"}:
         warnings.append("not calibrated (nominal model kept): " + ", ".join(g for g in cal.missing_groups if g != "noise"))
+    warnings += power_cycle_warnings(cal, data)
     meta = calibration_metadata(cal, data, warnings, imulab_version)
     return write_calibrated(out, correct_frame(cal, data.imu), meta), meta
 

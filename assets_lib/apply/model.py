@@ -31,7 +31,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +103,7 @@ class Triad:
     cross_coupling_stderr: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     @classmethod
-    def nominal(cls) -> "Triad":
+    def nominal(cls) -> Triad:
         z3, z33 = np.zeros(3), np.zeros((3, 3))
         return cls(np.ones(3), z33.copy(), z3.copy(), z3.copy(), z33.copy(), z3.copy())
 
@@ -152,6 +152,9 @@ class Calibration:
     #: (input accel, input gyro, output accel, output gyro) units: SI for records; other tools' calibrations
     #: imported for comparison (``assets_lib.records.export.calibration_from_imucal``) may map counts to deg/s
     units: tuple[str, str, str, str] = ("m/s^2", "rad/s", "m/s^2", "rad/s")
+    #: turn-on to turn-on bias repeatability ([SEED000] eq. 23, noise-corrected) from the device's records of
+    #: several power cycles up to ``at_utc`` (``turn_on_repeatability``), or None when fewer than 3 cycles
+    turn_on_repeatability: dict | None = None
 
     @property
     def identity_sha256(self) -> str:
@@ -188,6 +191,8 @@ class Calibration:
             "gravity_mps2": self.gravity_mps2,
             "sample_rate_hz": self.sample_rate_hz,
         }
+        if self.turn_on_repeatability is not None:  # absent when unknown: files written before it still verify
+            out["turn_on_repeatability"] = self.turn_on_repeatability
         if with_hash:
             out["calibration_sha256"] = hashlib.sha256(_canonical(out)).hexdigest()
         return out
@@ -201,7 +206,7 @@ def _record_info(record: dict, store_version: str | None = None) -> dict:
     return {"run_id": c["run"]["run_id"], "record_sha256": record["record_sha256"],
             "record_schema_version": record.get("record_schema_version"),
             "test_kind": c["run"]["test_kind"], "start_time_utc": c["run"]["start_time_utc"],
-            "store_version": store_version}
+            "power_cycle_index": c["run"].get("power_cycle_index"), "store_version": store_version}
 
 
 def check_record(record: dict, name: str = "record") -> None:
@@ -331,7 +336,42 @@ def assemble(records: list[dict], at=None, store_version: str | None = None) -> 
                 picks["gyro_bias_rate"] = (r, rows, store_version)
                 break
     noise = next((r for r in valid if r["content"].get("noise")), None)
-    return _build(next(iter(devices)), picks, valid, at_ts.isoformat(), noise)
+    cal = _build(next(iter(devices)), picks, valid, at_ts.isoformat(), noise)
+    rep = turn_on_repeatability(valid)
+    return replace(cal, turn_on_repeatability=rep) if rep is not None else cal
+
+
+#: power cycles needed before a turn-on repeatability is stated (2 give one degree of freedom: +/-100 % on sigma)
+MIN_POWER_CYCLES = 3
+
+
+def turn_on_repeatability(records: list[dict]) -> dict | None:
+    """Bias repeatability per triad and axis over the device's power cycles ([SEED000] eq. 23, noise-corrected:
+    sqrt(max(0, s^2 - mean stderr^2)), ``assets_lib.calibration.repeatability``): for each power cycle the newest
+    record holding the group's bias (accelerometer: position/tumble runs; gyro: static gyro biases of those runs).
+    None when no triad has ``MIN_POWER_CYCLES`` cycles."""
+    from assets_lib.calibration.repeatability import bias_repeatability
+
+    out = {}
+    for sensor, group in (("accel", "accel"), ("gyro", "gyro_bias_g")):
+        per_cycle: dict[int, dict] = {}
+        for r in sorted(records, key=lambda r: (_start(r), r["content"]["run"]["run_id"]), reverse=True):
+            rows = _groups_in_record(r).get(group, [])
+            pc = r["content"]["run"].get("power_cycle_index")
+            if pc is None or pc in per_cycle or not (rows and _complete(group, rows)):
+                continue
+            per_cycle[pc] = {c["axis"]: (float(c["value"]), c.get("stderr")) for c in rows if c["coefficient"] == "bias"}
+        if len(per_cycle) < MIN_POWER_CYCLES:
+            continue
+        sig = []
+        for a in AXES:
+            v = [d[a][0] for d in per_cycle.values()]
+            se = [np.nan if d[a][1] is None else float(d[a][1]) for d in per_cycle.values()]
+            rep = bias_repeatability(v, se)
+            sig.append(rep.std_noise_corrected if math.isfinite(rep.std_noise_corrected) else rep.std)
+        out[sensor] = sig
+        out[sensor + "_power_cycles"] = sorted(per_cycle)
+    return out or None
 
 
 def calibration_from_json(doc: dict) -> Calibration:
@@ -355,7 +395,7 @@ def calibration_from_json(doc: dict) -> Calibration:
     return Calibration(doc["device_id"], Triad(**tri["gyro"]), Triad(**tri["accel"]), tuple(terms),
                        tuple(doc["missing_groups"]), tuple(doc["not_applied"]), tuple(doc["noise"]),
                        tuple(doc["records"]), doc["latitude_deg"], doc["gravity_mps2"], doc["sample_rate_hz"],
-                       doc["at_utc"])
+                       doc["at_utc"], turn_on_repeatability=doc.get("turn_on_repeatability"))
 
 
 def load_calibration(path: str | Path) -> Calibration:

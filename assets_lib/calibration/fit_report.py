@@ -9,8 +9,6 @@ conversion comes from the one lab-unit table, ``raw_schemas.units.lab_unit``.
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 import pandas as pd
 
@@ -139,24 +137,19 @@ def residual_frame(fit, meta: pd.DataFrame, *, sensor: str, axis: str, input_nam
 
 
 def _png(fig) -> bytes:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    import matplotlib.pyplot as plt
+    from assets_lib.plotting import png
 
-    plt.close(fig)
-    return buf.getvalue()
+    return png(fig)
 
 
 def plot_rate_residuals_png(residuals: pd.DataFrame, title: str = "Gyro rate fit residuals") -> bytes:
     """Residual vs reference rate (deg/s) per gyro axis, residual in deg/h; excluded plateaus as red crosses."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from assets_lib.plotting import figure
 
     df = residuals[residuals["sensor"] == "gyro"]
     axes_present = [a for a in ("x", "y", "z") if (df["axis"] == a).any()]
-    fig, axs = plt.subplots(len(axes_present) or 1, 1, figsize=(7.5, 2.6 * max(len(axes_present), 1)), squeeze=False)
+    fig, axs = figure(len(axes_present) or 1, 1, figsize=(7.5, 2.6 * max(len(axes_present), 1)), dpi=110,
+                      margins_in=(0.95, 0.15, 0.6, 0.35))
     for ax, a in zip(axs[:, 0], axes_present):
         d = df[df["axis"] == a]
         x = d["input_value"].to_numpy() * RADPS_TO_DEGPS
@@ -169,7 +162,7 @@ def plot_rate_residuals_png(residuals: pd.DataFrame, title: str = "Gyro rate fit
             ax.plot(x[ex], r[ex], "x", color="red", ms=8, mew=2, label="excluded")
         ax.set_ylabel(f"gyro {a} residual [deg/h]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
+        ax.legend(fontsize=8, loc="upper right")
     axs[-1, 0].set_xlabel("reference rate on the axis, earth rate included [deg/s]")
     axs[0, 0].set_title(title)
     return _png(fig)
@@ -177,13 +170,11 @@ def plot_rate_residuals_png(residuals: pd.DataFrame, title: str = "Gyro rate fit
 
 def plot_multiposition_residuals_png(residuals: pd.DataFrame, title: str = "Multi-position fit residuals") -> bytes:
     """Residual per position (plan order) and axis: accelerometer in ug, gyro in deg/h; excluded in red."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from assets_lib.plotting import figure
 
     sensors = [s for s in ("accel", "gyro") if (residuals["sensor"] == s).any()]
-    fig, axs = plt.subplots(len(sensors) or 1, 1, figsize=(8.5, 3.0 * max(len(sensors), 1)), squeeze=False)
+    fig, axs = figure(len(sensors) or 1, 1, figsize=(8.5, 3.0 * max(len(sensors), 1)), dpi=110,
+                      margins_in=(0.95, 0.15, 0.6, 0.35))
     for ax, s in zip(axs[:, 0], sensors):
         d = residuals[residuals["sensor"] == s]
         fac, unit = (1e6 / G0, "ug") if s == "accel" else (RADPS_TO_DEGPH, "deg/h")
@@ -204,7 +195,7 @@ def plot_multiposition_residuals_png(residuals: pd.DataFrame, title: str = "Mult
         ax.axhline(0, color="0.6", lw=0.8)
         ax.set_ylabel(f"{s} residual [{unit}]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, ncol=3)
+        ax.legend(fontsize=8, ncol=3, loc="upper right")
     axs[-1, 0].set_xlabel("position (plan order; groups of 8 for the 24-position plan)")
     axs[0, 0].set_title(title)
     return _png(fig)

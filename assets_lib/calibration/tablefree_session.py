@@ -205,17 +205,12 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
 
 def plot_tablefree_png(imu: pd.DataFrame, result: TableFreeResult, title: str = "", max_points: int = 20000) -> bytes:
     """Calibrated specific force with the static poses shaded (Tedaldi) or the raw accel (Ferraris), as PNG."""
-    import io
-
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from assets_lib.plotting import figure, png
 
     t = imu["time_s"].to_numpy(float)
     acc = imu[list(ACCEL_COLUMNS)].to_numpy(float)
     step = max(1, t.size // max_points)
-    fig, ax = plt.subplots(figsize=(9, 3.6))
+    fig, ax = figure(1, 1, figsize=(9, 3.6), dpi=90, squeeze=True, margins_in=(0.8, 0.15, 0.55, 0.35))
     if result.method == "tedaldi":
         ax.plot(t[::step], result.accel_fit.apply(acc[::step]), lw=0.5)
         for a, b in zip(result.poses.starts, result.poses.ends):
@@ -228,8 +223,4 @@ def plot_tablefree_png(imu: pd.DataFrame, result: TableFreeResult, title: str = 
     ax.set_xlabel("t [s]")
     ax.set_ylabel("calibrated specific force [m/s^2]")
     ax.set_title(f"{title}  {sub}".strip(), fontsize=9)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return buf.getvalue()
+    return png(fig)

@@ -59,7 +59,6 @@ Where sigma_turnon comes from (``sigma_source``):
 
 from __future__ import annotations
 
-import io
 import math
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -545,17 +544,19 @@ class FleetDrift:
         """Control chart of one family: standardized deviation (x - centre)/sigma per run, one line per device
         (and method), one panel per axis, +/- limit lines; runs beyond limits circled red, shift runs as red
         triangles, drifting series dashed with their trend."""
-        import matplotlib
+        from matplotlib import colormaps
 
-        matplotlib.use("Agg", force=False)
-        import matplotlib.pyplot as plt
+        from assets_lib.plotting import figure, png
 
         ser = [s for s in self.series if s.key.get("sensor") == sensor and s.key.get("coefficient") == coefficient]
         axes_present = sorted({s.key.get("axis", "") for s in ser}) or [""]
-        fig, axs = plt.subplots(len(axes_present), 1, figsize=(8.5, 2.7 * len(axes_present)), squeeze=False,
-                                sharex=True)
         labels = sorted({(s.key.get("device_id"), s.key.get("method")) for s in ser})
-        colors = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+        # room on the right for the legend (outside the axes), as bbox_inches="tight" gave without a second draw
+        legend_in = 0.3 + 0.065 * max((len(f"{d} ({m}) [drift+shift]") for d, m in labels), default=0)
+        fig, axs = figure(len(axes_present), 1, figsize=(8.5 + legend_in, 2.7 * len(axes_present)), dpi=100,
+                          sharex=True, margins_in=(1.1, legend_in, 0.55, 0.4), hspace=0.15)
+        tab10 = colormaps["tab10"]
+        colors = {lab: tab10(i % 10) for i, lab in enumerate(labels)}
         for ax, a in zip(axs[:, 0], axes_present):
             lim = self.config.limit_sigma
             ax.axhspan(-lim, lim, color="0.93", zorder=0)
@@ -586,10 +587,7 @@ class FleetDrift:
         axs[-1, 0].set_xlabel("days since the device's first run")
         axs[0, 0].set_title(f"Fleet drift: {sensor} {coefficient} (red circle: beyond +/-{self.config.limit_sigma:g} "
                             "sigma; red triangle: abrupt shift; dashed: drift)", fontsize=9)
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-        plt.close(fig)
-        return buf.getvalue()
+        return png(fig)
 
     def plots(self) -> dict[str, bytes]:
         """One PNG per coefficient family, named ``drift_<sensor>_<coefficient>``."""

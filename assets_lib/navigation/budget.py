@@ -70,7 +70,7 @@ class Profile:
 
 
 def plan_profile(plan_name: str, latitude_deg: float, duration_s: float, height_m: float = 0.0,
-                 rate_hz: float = MOTION_RATE_HZ, **plan_kwargs) -> Profile:
+                 rate_hz: float = MOTION_RATE_HZ, rest_step_s: float = AT_REST_STEP_S, **plan_kwargs) -> Profile:
     """A plan of the simulator's library (``assets_lib.sim.plans``) as a navigation profile: steps of 1/rate_hz
     while the plan runs, then 1 s steps at rest (the table stopped) up to ``duration_s``."""
     from scipy.spatial.transform import Rotation
@@ -88,7 +88,7 @@ def plan_profile(plan_name: str, latitude_deg: float, duration_s: float, height_
     n1 = int(round(t_motion * rate_hz))
     dt = [np.full(n1, 1.0 / rate_hz)]
     rest = duration_s - n1 / rate_hz
-    n2 = int(np.ceil(rest / AT_REST_STEP_S - 1e-9))
+    n2 = int(np.ceil(rest / rest_step_s - 1e-9))
     if n2 > 0:
         dt.append(np.full(n2, rest / n2))
     dt = np.concatenate(dt)
@@ -105,8 +105,10 @@ def plan_profile(plan_name: str, latitude_deg: float, duration_s: float, height_
     return Profile(plan_name, dt, bi.omega_b_radps, bi.f_b_mps2, c[0], latitude_deg, height_m, dth / dt[:, None], f_step)
 
 
-def static_profile(latitude_deg: float, duration_s: float = DEFAULT_TIMES_S[-1], height_m: float = 0.0) -> Profile:
-    return plan_profile("static_long", latitude_deg, duration_s, height_m, static_duration_s=max(duration_s, 10.0))
+def static_profile(latitude_deg: float, duration_s: float = DEFAULT_TIMES_S[-1], height_m: float = 0.0,
+                   rest_step_s: float = AT_REST_STEP_S) -> Profile:
+    return plan_profile("static_long", latitude_deg, duration_s, height_m, rest_step_s=rest_step_s,
+                        static_duration_s=max(duration_s, 10.0))
 
 
 def motion_profile(latitude_deg: float, duration_s: float = DEFAULT_TIMES_S[-1], height_m: float = 0.0,
@@ -238,6 +240,44 @@ def heading_from_gyro_bias_rad(bias_radps, t_s) -> np.ndarray:
     return -np.asarray(bias_radps) * np.asarray(t_s)
 
 
+def tilt_from_accel_bias_rad(bias_mps2, t_s, latitude_deg: float, channel: str = "north") -> np.ndarray:
+    """Horizontal accelerometer bias b along ``channel``: tilt (b / g)(1 - cos w_s t) about the other horizontal
+    axis (north bias: about east, sign -; east bias: about north, sign +)."""
+    ws = schuler_rate_radps(latitude_deg, channel=channel)
+    sign = -1.0 if channel == "north" else 1.0
+    g = normal_gravity_mps2(latitude_deg, 0.0)
+    return sign * np.asarray(bias_mps2) / g * (1 - np.cos(ws * np.asarray(t_s)))
+
+
+def rest_drift_closed_form(cal: Calibration, latitude_deg: float, times_s=DEFAULT_TIMES_S) -> DriftResult:
+    """Free-inertial drift at rest, level, body axes ENU (the ``static_long`` profile) by the closed forms above,
+    for the uncalibrated case and every term's 1-sigma case (constant body errors at rest: ``sensitivities`` at
+    the static inputs), summed in quadrature over the terms. Milliseconds, against seconds for the strapdown
+    (``drift``), which tests/test_navigation.py checks it against (within 5 %)."""
+    lat = np.radians(latitude_deg)
+    g = normal_gravity_mps2(latitude_deg, 0.0)
+    f_b = np.array([0.0, 0.0, g])
+    w_b = EARTH_RATE_RADPS * np.array([0.0, np.cos(lat), np.sin(lat)])
+    y = forward(cal, w_b, f_b)
+    s = sensitivities(cal, y.gyro_radps, y.accel_mps2)
+    dw = np.concatenate([(y.gyro_radps - w_b)[None, 0], s.gyro[:, 0]])  # (cases, 3) E N U
+    df = np.concatenate([(y.accel_mps2 - f_b)[None, 0], s.accel[:, 0]])
+    t = np.asarray(times_s, float)[None, :]
+    c = lambda v: np.asarray(v)[:, None]
+    north = position_from_accel_bias_m(c(df[:, 1]), t, latitude_deg, "north") \
+        + position_from_gyro_bias_m(c(dw[:, 0]), t, latitude_deg, "east")
+    east = position_from_accel_bias_m(c(df[:, 0]), t, latitude_deg, "east") \
+        + position_from_gyro_bias_m(c(dw[:, 1]), t, latitude_deg, "north")
+    tilt_e = tilt_from_gyro_bias_rad(c(dw[:, 0]), t, latitude_deg, "east") \
+        + tilt_from_accel_bias_rad(c(df[:, 1]), t, latitude_deg, "north")
+    tilt_n = tilt_from_gyro_bias_rad(c(dw[:, 1]), t, latitude_deg, "north") \
+        + tilt_from_accel_bias_rad(c(df[:, 0]), t, latitude_deg, "east")
+    head = heading_from_gyro_bias_rad(c(dw[:, 2]), t)
+    rss = lambda x: np.sqrt((x[1:] ** 2).sum(axis=0))
+    return DriftResult("at rest (closed forms)", t[0], np.hypot(rss(north), rss(east)), np.hypot(north[0], east[0]),
+                       np.hypot(rss(tilt_e), rss(tilt_n)), np.hypot(tilt_e[0], tilt_n[0]), rss(head), np.abs(head[0]))
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Certificate fragment
 # ---------------------------------------------------------------------------------------------------------------
@@ -251,12 +291,12 @@ class NavigationBudget:
 
 
 def navigation_budget(cal: Calibration, times_s=DEFAULT_TIMES_S, latitude_deg: float | None = None,
-                      profiles=("static", "motion")) -> NavigationBudget:
+                      profiles=("static", "motion"), rest_step_s: float = AT_REST_STEP_S) -> NavigationBudget:
     """Alignment and drift budget of ``cal`` at the record's site (or ``latitude_deg``)."""
     lat = float(latitude_deg if latitude_deg is not None else (cal.latitude_deg if cal.latitude_deg is not None else 45.0))
     g = normal_gravity_mps2(lat, 0.0)
     dur = float(max(times_s))
-    makers = {"static": static_profile, "motion": motion_profile}
+    makers = {"static": lambda la, du: static_profile(la, du, rest_step_s=rest_step_s), "motion": motion_profile}
     drifts = tuple(drift(cal, makers[p](lat, dur), times_s) for p in profiles)
     return NavigationBudget(alignment_budget(cal, lat, g), drifts, lat, g, cal.identity_sha256)
 
@@ -291,16 +331,17 @@ def budget_plot_png(budget: NavigationBudget) -> bytes:
     ax[1].set(xlabel="free-inertial time [s]", ylabel="heading error [deg]")
     ax[0].legend(fontsize=7)
     for a in ax:
-        a.grid(True, which="both", alpha=0.3)
-    fig.tight_layout()
+        a.grid(True, which="major", alpha=0.3)
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.15, top=0.96, wspace=0.28)  # fixed: tight_layout doubles the
+    # cost of drawing the log axes, and the certificate draws one plot per record
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
     return buf.getvalue()
 
 
-def budget_html(budget: NavigationBudget) -> str:
-    """A certificate section: alignment and drift table (calibrated 1 sigma vs uncalibrated) and a PNG plot."""
+def budget_rows(budget: NavigationBudget) -> list[tuple[str, str, str]]:
+    """(quantity (HTML), calibrated 1 sigma, uncalibrated) texts of the budget table."""
     a = budget.alignment
     rows = [("Alignment: level (accelerometer error / g)", _fmt_angle(a.level_calibrated_rad),
              _fmt_angle(a.level_uncalibrated_numerical_rad)),
@@ -314,31 +355,72 @@ def budget_html(budget: NavigationBudget) -> str:
                          f"{_fmt_angle(d.heading_calibrated_rad[i])}",
                          f"{_fmt_len(d.position_uncalibrated_m[i])} / {_fmt_angle(d.tilt_uncalibrated_rad[i])} / "
                          f"{_fmt_angle(d.heading_uncalibrated_rad[i])}"))
+    return rows
+
+
+def budget_note(budget: NavigationBudget) -> str:
+    """The section's explanation (plain text)."""
+    names = " and ".join({"static_long": "static_long (at rest, level)",
+                          "quick_rate": "quick_rate (rate-table motion, then at rest)"}.get(d.profile, d.profile)
+                         for d in budget.drifts)
+    return (f"Latitude {budget.latitude_deg:.4g} deg, g = {budget.gravity_mps2:.6g} m/s^2. Calibrated: the "
+            "coefficients' standard errors propagated (1 sigma, terms independent); uncalibrated: the coefficients "
+            "left uncorrected. Alignment by the closed forms; drift by strapdown integration of the simulator's "
+            f"{names} profile{'s' if len(budget.drifts) > 1 else ''}, height aided; sensor noise not included.")
+
+
+def budget_html(budget: NavigationBudget) -> str:
+    """A certificate section: alignment and drift table (calibrated 1 sigma vs uncalibrated) and a PNG plot."""
     png = base64.b64encode(budget_plot_png(budget)).decode()
     return ("<h2>What the calibration buys in navigation</h2>"
-            f"<p class=muted>Latitude {budget.latitude_deg:.4g} deg, g = {budget.gravity_mps2:.6g} m/s^2. Calibrated: "
-            "the coefficients' standard errors propagated (1 sigma, terms independent); uncalibrated: the "
-            "coefficients left uncorrected. Drift by strapdown integration of the simulator's static_long (at "
-            "rest, level) and quick_rate (rate-table motion, then at rest) profiles, height aided; sensor noise "
-            "not included.</p><table><tr><th>Quantity</th><th>Calibrated (1&sigma;)</th><th>Uncalibrated</th></tr>"
-            + "".join(f"<tr><td>{html.escape(q) if '&' not in q else q}</td><td class=num>{c}</td>"
-                      f"<td class=num>{u}</td></tr>" for q, c, u in rows)
+            f"<p class=muted>{html.escape(budget_note(budget))}</p>"
+            "<table><tr><th>Quantity</th><th>Calibrated (1&sigma;)</th><th>Uncalibrated</th></tr>"
+            + "".join(f"<tr><td>{q}</td><td class=num>{c}</td><td class=num>{u}</td></tr>"
+                      for q, c, u in budget_rows(budget))
             + f"</table><img alt='navigation budget' src='data:image/png;base64,{png}'>")
 
 
-def certificate_section(device_records: list[dict], run_id: str, times_s=DEFAULT_TIMES_S) -> str:
-    """The certificate's navigation section for the record of ``run_id``: the budget of the device calibration
-    assembled at that record's start (each term from the newest record holding it up to then, so a rate run's
-    certificate also counts the accelerometer terms of the position run before it), naming the records used."""
-    from assets_lib.apply.model import _start, assemble
+def certificate_calibration(device_records: list[dict], run_id: str) -> Calibration | None:
+    """The device calibration a record's certificate budgets: assembled at the record's start from the device's
+    records up to then (each term from the newest record holding it, so a rate run's certificate also counts the
+    accelerometer terms of the position run before it). None for an invalid record or when nothing is calibrated."""
+    from assets_lib.apply.model import CalibrationError, _start, assemble
 
     rec = next((r for r in device_records if r["content"]["run"]["run_id"] == run_id), None)
     if rec is None:
         raise ValueError(f"no record of run {run_id!r} among the device's records")
-    cal = assemble([r for r in device_records if _start(r) <= _start(rec)], _start(rec))
+    if rec["content"].get("status") == "invalid":
+        return None
+    try:
+        cal = assemble([r for r in device_records if _start(r) <= _start(rec)], _start(rec))
+    except CalibrationError:
+        return None
+    return cal if cal.terms else None
+
+
+#: the certificate integrates at rest in 2 s steps (the Schuler period is 84 min; tests/test_navigation.py checks
+#: the result against 1 s steps: within 2 %)
+CERTIFICATE_REST_STEP_S = 2.0
+
+
+def certificate_budget(cal: Calibration, times_s=DEFAULT_TIMES_S) -> NavigationBudget:
+    """The certificate's budget: alignment closed forms and the static_long strapdown in 2 s steps (the
+    motion profile's 20 Hz strapdown, ~10 s per calibration, stays in ``navigation_budget``)."""
+    return navigation_budget(cal, times_s, profiles=("static",), rest_step_s=CERTIFICATE_REST_STEP_S)
+
+
+def certificate_section(device_records: list[dict], run_id: str, times_s=DEFAULT_TIMES_S) -> str:
+    """The certificate's navigation section for the record of ``run_id`` (``certificate_calibration``), naming the
+    records used."""
+    cal = certificate_calibration(device_records, run_id)
+    if cal is None:
+        return ""
+    return budget_html(navigation_budget(cal, times_s)).replace(
+        "</p><table>", html.escape(used_records_note(cal)) + "</p><table>", 1)
+
+
+def used_records_note(cal: Calibration) -> str:
     used = ", ".join(f"{r['run_id']} ({r['record_sha256'][:12]}...)" for r in cal.records)
     missing = (f"; not calibrated at that date: {', '.join(g for g in cal.missing_groups if g != 'noise')}"
                if set(cal.missing_groups) - {"noise"} else "")
-    return (budget_html(navigation_budget(cal, times_s)).replace(
-        "</p><table>", f" Device calibration at this run's start from records {html.escape(used)}"
-                       f"{html.escape(missing)}.</p><table>", 1))
+    return f" Device calibration at this run's start from records {used}{missing}."

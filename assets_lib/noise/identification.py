@@ -47,7 +47,6 @@ a +-50 % interval, and a slope through them can be anything).
 
 from __future__ import annotations
 
-import io
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -835,17 +834,14 @@ _TERM_STYLE = {"Q": "-1", "N": "-1/2", "B": "0", "K": "+1/2", "R": "+1", "M": "M
 
 def plot_allan(results, fits: Mapping[str, NoiseFit] | None = None, path=None, title: str = "") -> bytes:
     """Log-log Allan deviation per channel with chi-square bars, the fitted model and each term's line (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    from assets_lib.plotting import figure, log_axes, png
 
     if isinstance(results, AllanResult):
         results = {results.channel or "ch": results}
     names = list(results)
     ncol = min(3, len(names)) or 1
     nrow = int(math.ceil(len(names) / ncol)) or 1
-    fig, axes = plt.subplots(nrow, ncol, figsize=(5.2 * ncol, 4.2 * nrow), squeeze=False)
+    fig, axes = figure(nrow, ncol, figsize=(5.2 * ncol, 4.2 * nrow), dpi=110, margins_in=(0.8, 0.15, 0.55, 0.6))
     for ax, name in zip(axes.ravel(), names):
         r = results[name]
         ok = np.isfinite(r.adev) & (r.adev > 0)
@@ -864,22 +860,17 @@ def plot_allan(results, fits: Mapping[str, NoiseFit] | None = None, path=None, t
                               label=f"{t} ({_TERM_STYLE[t]})" + (" upper bound" if ub else ""))
             ymin = r.adev[ok].min() / 5
             ax.set_ylim(bottom=ymin)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        log_axes(ax)
         ax.set_xlabel("tau [s]")
         ax.set_ylabel(f"{r.kind.upper()} [{r.unit or 'SI'}]")
         ax.set_title(name)
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7, loc="lower left")
     for ax in axes.ravel()[len(names) :]:
         ax.set_visible(False)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    data = buf.getvalue()
+    data = png(fig)
     if path is not None:
         with open(path, "wb") as fh:
             fh.write(data)

@@ -26,6 +26,9 @@ from assets_lib.records.diff import coefficient_id, noise_id
 #: bumped whenever the rendering changes (the full-page comparison applies to certificates of the same format)
 CERTIFICATE_FORMAT = "2"
 UNCERTAINTY_DIGITS = 2
+#: alt text of the navigation-budget plot and id of the embedded device calibration it was computed from
+NAV_PLOT = "navigation budget"
+DEVICE_CALIBRATION_ID = "imulab-device-calibration"
 
 _CSS = """body{font-family:Helvetica,Arial,sans-serif;margin:2em;color:#222;max-width:70em}
 table{border-collapse:collapse;margin:0.6em 0 1.4em 0;font-size:0.88em}
@@ -169,6 +172,50 @@ def certified_cells(record: dict) -> dict[str, str]:
     return cells
 
 
+def navigation_cells(device_calibration) -> tuple[dict[str, str], list[str], object]:
+    """The navigation budget's certified texts (``nav/<row>/calibrated|uncalibrated``), row labels (HTML) and the
+    budget, computed deterministically from the device calibration the certificate embeds
+    (``assets_lib.navigation.budget.certificate_budget``: closed-form alignment, 1 h at-rest strapdown)."""
+    from assets_lib.navigation.budget import budget_rows, certificate_budget
+
+    budget = certificate_budget(device_calibration)
+    cells, labels = {}, []
+    for i, (label, cal, unc) in enumerate(budget_rows(budget)):
+        cells[f"nav/{i}/calibrated"], cells[f"nav/{i}/uncalibrated"] = html.unescape(cal), html.unescape(unc)
+        labels.append(label)
+    return cells, labels, budget
+
+
+def device_calibration_problems(record: dict, doc) -> tuple[object | None, list[str]]:
+    """(Calibration, problems) of the device calibration embedded beside a record: its own hash, its date (the
+    record's start), its device, and every term it takes from this record equal to the record's value. Terms from
+    the device's earlier records are named by run id and record sha256 (in the calibration and on the page); they
+    are not checked against those records here (the certificate embeds only its own record)."""
+    from assets_lib.apply.model import CalibrationError, calibration_from_json, to_utc
+
+    try:
+        cal = calibration_from_json(doc)
+    except (CalibrationError, KeyError, TypeError, ValueError) as e:
+        return None, [f"certificate: the embedded device calibration cannot be read ({e})"]
+    c = record["content"]
+    problems = []
+    if cal.device_id != c["device"]["id"]:
+        problems.append(f"certificate: the embedded device calibration is of device {cal.device_id!r}, the record "
+                        f"of {c['device']['id']!r}")
+    if cal.at_utc is None or to_utc(cal.at_utc) != to_utc(c["run"]["start_time_utc"]):
+        problems.append(f"certificate: the embedded device calibration is at {cal.at_utc}, not at the record's start "
+                        f"{c['run']['start_time_utc']}")
+    rows = {(r["sensor"], r["axis"], r["coefficient"], r.get("source")): r for r in c.get("coefficients", [])}
+    for t in cal.terms:
+        if t.run_id != c["run"]["run_id"]:
+            continue
+        r = rows.get((t.sensor, t.axis, t.coefficient, t.source))
+        if t.record_sha256 != record["record_sha256"] or r is None or r.get("value") != t.value:
+            problems.append(f"certificate: the embedded device calibration's {t.sensor} {t.axis} {t.coefficient} "
+                            f"from run {t.run_id} is not this record's value")
+    return cal, problems
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Rendering
 # ---------------------------------------------------------------------------------------------------------------
@@ -176,13 +223,26 @@ def _e(v) -> str:
     return html.escape("" if v is None else str(v))
 
 
-def certificate_html(record: dict, plots: dict[str, bytes] | None = None) -> str:
+def certificate_html(record: dict, plots: dict[str, bytes] | None = None, device_calibration=None) -> str:
     """Human-readable certificate of one record: validity banner, record id and hash, conditions, coefficient
     table with standard and expanded (k = 2) uncertainties in lab and SI units rounded to the uncertainty, noise
     terms with intervals, raw file hashes, software and stage versions, the residual / Allan plots embedded as
-    base64 PNG, and the record itself as canonical JSON (for ``imulab verify CERT.html``)."""
+    base64 PNG, and the record itself as canonical JSON (for ``imulab verify CERT.html``).
+
+    With ``device_calibration`` (``assets_lib.navigation.budget.certificate_calibration``: the device's
+    calibration at the record's start) also what it buys in navigation: a small table and plot, with the device
+    calibration embedded as hashed JSON so that ``imulab verify`` recomputes every printed budget value."""
     c = record["content"]
     cells = certified_cells(record)
+    plots = dict(plots or {})
+    nav_png = plots.pop(NAV_PLOT, None)
+    if device_calibration is not None:
+        nav_cells, nav_labels, budget = navigation_cells(device_calibration)
+        cells.update(nav_cells)
+        if nav_png is None:
+            from assets_lib.navigation.budget import budget_plot_png
+
+            nav_png = budget_plot_png(budget)
     dev, run = c["device"], c["run"]
 
     def td(key: str, cls: str = "", tag: str = "td", code: bool = False) -> str:
@@ -248,6 +308,16 @@ def certificate_html(record: dict, plots: dict[str, bytes] | None = None) -> str
     for name, png in (plots or {}).items():
         parts.append(f"<h2>{_e(name)}</h2><img alt='{_e(name)}' src='data:image/png;base64,"
                      f"{base64.b64encode(png).decode()}'>")
+    if device_calibration is not None:
+        from assets_lib.navigation.budget import budget_note, used_records_note
+
+        parts.append("<h2>What the calibration buys in navigation</h2><p class=muted>"
+                     + _e(budget_note(budget) + used_records_note(device_calibration))
+                     + " Recomputed by imulab verify from the device calibration embedded in this page.</p>"
+                     "<table><tr><th>Quantity</th><th>Calibrated (1&sigma;)</th><th>Uncalibrated</th></tr>"
+                     + "".join(f"<tr><td>{label}</td>{td(f'nav/{i}/calibrated', 'num')}"
+                               f"{td(f'nav/{i}/uncalibrated', 'num')}</tr>" for i, label in enumerate(nav_labels))
+                     + f"</table><img alt='{NAV_PLOT}' src='data:image/png;base64,{base64.b64encode(nav_png).decode()}'>")
     parts.append("<h2>Raw data (sha256)</h2>" + kv([(n, f"raw/{n}", True) for n in c["raw_files"]]))
     parts.append("<h2>Software</h2>" + kv([("imulab", "software/imulab", False), ("git commit", "software/git_commit", True),
                                            *[(f"stage {a}", f"stage/{a}", False) for a in c["stages"]]]))
@@ -257,7 +327,11 @@ def certificate_html(record: dict, plots: dict[str, bytes] | None = None) -> str
                  "that this page shows its record, recomputes the coefficients from the raw archive and checks the "
                  "hash chain.</p>")
     embedded = canonical_json(record).decode("utf-8").replace("<", "\\u003c")
-    parts.append(f"<script type='application/json' id='imulab-record'>{embedded}</script></body></html>\n")
+    parts.append(f"<script type='application/json' id='imulab-record'>{embedded}</script>")
+    if device_calibration is not None:
+        doc = canonical_json(device_calibration.to_json()).decode("utf-8").replace("<", "\\u003c")
+        parts.append(f"<script type='application/json' id='{DEVICE_CALIBRATION_ID}'>{doc}</script>")
+    parts.append("</body></html>\n")
     return "".join(parts)
 
 
@@ -268,6 +342,7 @@ def certificate_html(record: dict, plots: dict[str, bytes] | None = None) -> str
 class ParsedCertificate:
     format: str | None = None
     record: dict | None = None
+    device_calibration: dict | None = None
     cells: dict[str, list[str]] = field(default_factory=dict)  # key -> texts shown (a key shown twice is an edit)
     plots: dict[str, bytes] = field(default_factory=dict)
 
@@ -279,14 +354,15 @@ class _Parser(HTMLParser):
         self._stack: list[tuple[str, str | None]] = []  # (tag, data-k)
         self._text: dict[int, list[str]] = {}
         self._script: list[str] | None = None
+        self._script_id: str | None = None
         self._h2 = None
 
     def handle_starttag(self, tag, attrs):
         a = dict(attrs)
         if tag == "body":
             self.out.format = a.get("data-imulab-certificate")
-        if tag == "script" and a.get("id") == "imulab-record":
-            self._script = []
+        if tag == "script" and a.get("id") in ("imulab-record", DEVICE_CALIBRATION_ID):
+            self._script, self._script_id = [], a.get("id")
             return
         if tag == "img" and (a.get("src") or "").startswith("data:image/png;base64,"):
             self.out.plots[a.get("alt") or f"plot {len(self.out.plots)}"] = base64.b64decode(a["src"].split(",", 1)[1])
@@ -300,9 +376,13 @@ class _Parser(HTMLParser):
     def handle_endtag(self, tag):
         if tag == "script" and self._script is not None:
             try:
-                self.out.record = json.loads("".join(self._script))
+                doc = json.loads("".join(self._script))
             except json.JSONDecodeError:
-                self.out.record = None
+                doc = None
+            if self._script_id == DEVICE_CALIBRATION_ID:
+                self.out.device_calibration = doc if doc is not None else "unreadable"
+            else:
+                self.out.record = doc
             self._script = None
             return
         while self._stack:
@@ -344,6 +424,12 @@ def certificate_problems(text: str) -> tuple[dict | None, list[str]]:
         want = certified_cells(rec)
     except (KeyError, TypeError) as e:
         return rec, problems + [f"certificate: the embedded record is incomplete ({type(e).__name__}: {e})"]
+    device_cal = None
+    if cert.device_calibration is not None:
+        device_cal, more = device_calibration_problems(rec, cert.device_calibration)
+        problems += more
+        if device_cal is not None:
+            want.update(navigation_cells(device_cal)[0])
     for key in sorted(set(want) | set(cert.cells), key=str):
         shown = cert.cells.get(key, [])
         if key not in want:
@@ -352,7 +438,7 @@ def certificate_problems(text: str) -> tuple[dict | None, list[str]]:
             problems.append(f"certificate: {key} (record: {want[key]!r}) is not shown")
         elif len(shown) > 1 or shown[0] != want[key]:
             problems.append(f"certificate: {key} shows {' / '.join(map(repr, shown))}, the record gives {want[key]!r}")
-    if not problems and cert.format == CERTIFICATE_FORMAT and certificate_html(rec, cert.plots) != text:
+    if not problems and cert.format == CERTIFICATE_FORMAT and certificate_html(rec, cert.plots, device_cal) != text:
         problems.append("certificate: the page differs from the rendering of its record outside the value cells "
                         "(text added or changed)")
     if cert.format != CERTIFICATE_FORMAT:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 from collections import OrderedDict
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -174,6 +174,7 @@ def _compute_trajectory(plan, t_s: np.ndarray) -> Trajectory:
 _CACHE: "OrderedDict[tuple, Trajectory] | None" = None
 _CACHE_MAX = 64
 CACHE_STATS = {"hits": 0, "subset_hits": 0, "misses": 0}
+_SUBSET_SEEN: OrderedDict[tuple, None] = OrderedDict()
 
 
 def _plan_key(plan) -> str:
@@ -240,12 +241,18 @@ def trajectory(plan, t_s: np.ndarray) -> Trajectory:
         _CACHE.move_to_end(key)
         CACHE_STATS["hits"] += 1
         return hit
-    sub = _lookup(plan, pk, t)
-    if sub is not None:
+    tr = _lookup(plan, pk, t)
+    if tr is not None:
         CACHE_STATS["subset_hits"] += 1
-        return sub
-    CACHE_STATS["misses"] += 1
-    tr = _compute_trajectory(plan, t)
+        if key not in _SUBSET_SEEN:  # kept under its own key from its second request on (a grid asked for again,
+            _SUBSET_SEEN[key] = None  # e.g. the table log in every replicate), not for one-off windows
+            while len(_SUBSET_SEEN) > 4 * _CACHE_MAX:
+                _SUBSET_SEEN.popitem(last=False)
+            return tr
+    else:
+        CACHE_STATS["misses"] += 1
+        tr = _compute_trajectory(plan, t)
+    tr = replace(tr, t_s=t.copy())  # the caller's array stays writeable
     for a in (tr.t_s, tr.c_b2l, tr.omega_motion_level_radps, tr.table_angle_rad, tr.table_rate_radps, tr.step_index):
         a.flags.writeable = False
     _CACHE[key] = tr

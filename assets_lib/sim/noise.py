@@ -6,6 +6,7 @@ with two-sided rate PSDs S(f) = (2 pi f)^2 Q^2 tau0 (quantization), N^2, (B^2 / 
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -61,14 +62,44 @@ def flicker_noise(n_samples: int, rate_hz: float, b: float, rng: np.random.Gener
     if b == 0.0 or n_samples < 2:
         return np.zeros(n_samples)
     m = sp_fft.next_fast_len(int(np.ceil(max(span_factor, 1.0) * n_samples)), real=True)
+    amp = _flicker_amplitude(m, float(rate_hz), float(b))
+    spec = np.empty(amp.size, dtype=complex)  # amp (re + i im), without complex temporaries (same arithmetic)
+    spec.real = rng.standard_normal(amp.size)
+    spec.imag = rng.standard_normal(amp.size)
+    spec *= amp
+    if m % 2 == 0:
+        spec[-1] = spec[-1].real * np.sqrt(2.0)  # Nyquist bin is real
+    return np.fft.irfft(spec, n=m)[:n_samples]
+
+
+_SHAPES: dict | None = None
+
+
+def _flicker_amplitude(m: int, rate_hz: float, b: float) -> np.ndarray:
+    """Spectral amplitude of :func:`flicker_noise` on an m-point block; memoised inside :func:`flicker_shape_cache`."""
+    if _SHAPES is not None and (m, rate_hz, b) in _SHAPES:
+        return _SHAPES[(m, rate_hz, b)]
     f = np.fft.rfftfreq(m, d=1.0 / rate_hz)
     one_sided = np.zeros_like(f)
     one_sided[1:] = b**2 / (np.pi * f[1:])  # one-sided PSD = 2 x two-sided
     amp = np.sqrt(one_sided * rate_hz * m / 4.0)
-    spec = amp * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
-    if m % 2 == 0:
-        spec[-1] = spec[-1].real * np.sqrt(2.0)  # Nyquist bin is real
-    return np.fft.irfft(spec, n=m)[:n_samples]
+    if _SHAPES is not None:
+        amp.flags.writeable = False
+        _SHAPES[(m, rate_hz, b)] = amp
+    return amp
+
+
+@contextmanager
+def flicker_shape_cache():
+    """Within this block the flicker spectral amplitude of each (block length, rate, B) is computed once: replicates
+    of a device redraw only the random phases (the same arithmetic on the same values, so bit-identical)."""
+    global _SHAPES
+    prev = _SHAPES
+    _SHAPES = {} if prev is None else prev
+    try:
+        yield _SHAPES
+    finally:
+        _SHAPES = prev
 
 
 def allan_noise(

@@ -53,6 +53,15 @@ def _rk(twin: TwinModel) -> np.ndarray:
 def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0, workers: int | None = None,
                     aug_replicates: int | None = None, progress=None, experiment: DeviceExperiment | None = None
                     ) -> Diagnosis:
+    if experiment is None and landing is not None:  # hand-moved sessions: the table-free experiment
+        from assets_lib.simreal.tablefree_diagnose import (
+            diagnose_tablefree,
+            load_tablefree_frames,
+        )
+
+        frames = load_tablefree_frames(landing, device_id)
+        if frames is not None:
+            return diagnose_tablefree(frames, device_id, replicates, seed, workers, aug_replicates, progress)
     tm = {}
     say = progress or (lambda msg: None)
     t0 = time.time()

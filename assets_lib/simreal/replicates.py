@@ -4,6 +4,7 @@ Each replicate r of a device: every run simulated by ``twin.simulate_run_imu`` w
 processed by ``experiment.process_run`` (segmentation and library fits), then turned into a ``Design`` and its
 views. Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
 copy-on-write, never pickled); results depend only on (seed, r), so they are identical for any worker count.
+The plan kinematics and flicker spectral shapes are cached across replicates (bit-identical to computing them).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assets_lib.sim.kinematics import kinematics_cache
+from assets_lib.sim.noise import flicker_shape_cache
 from assets_lib.simreal.design import Design, build_design
 from assets_lib.simreal.experiment import process_run
 from assets_lib.simreal.twin import TwinModel, simulate_run_imu
@@ -57,24 +60,34 @@ def default_workers() -> int:
     return max(1, min(2, os.cpu_count() or 1))
 
 
+def parallel_map(fn, items, workers: int | None = None, progress=None) -> list:
+    """``[fn(x) for x in items]`` in worker processes (fork start: what the parent holds, e.g. recorded inputs and a
+    warm ``kinematics_cache``, is shared copy-on-write, never pickled; ``fn`` and the results are pickled). Results
+    come back in order and do not depend on the worker count. ``progress(done, n)`` after each."""
+    items = list(items)
+    n = len(items)
+    workers = default_workers() if workers is None else workers
+    out = []
+    if workers <= 1 or n <= 1:
+        for x in items:
+            out.append(fn(x))
+            if progress:
+                progress(len(out), n)
+        return out
+    with ProcessPoolExecutor(max_workers=min(workers, n), mp_context=mp.get_context("fork")) as ex:
+        for res in ex.map(fn, items):
+            out.append(res)
+            if progress:
+                progress(len(out), n)
+    return out
+
+
 def run_replicates(twin: TwinModel, runs, windows, rk, n: int, seed: int, workers: int | None = None,
                    progress=None, key: str = "base") -> list[Replicate]:
     """``n`` replicates (indices 0..n-1) of ``twin``; ``progress(done, n)`` after each."""
-    workers = default_workers() if workers is None else workers
     _STATE[key] = {"twin": twin, "runs": runs, "windows": windows, "rk": rk}
-    out = []
-    try:
-        if workers <= 1 or n <= 1:
-            for r in range(n):
-                out.append(_worker((r, seed, key)))
-                if progress:
-                    progress(len(out), n)
-        else:
-            with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("fork")) as ex:
-                for rep in ex.map(_worker, [(r, seed, key) for r in range(n)]):
-                    out.append(rep)
-                    if progress:
-                        progress(len(out), n)
+    try:  # plan kinematics and flicker spectral shapes are the same in every replicate (bit-identical caches)
+        with kinematics_cache(), flicker_shape_cache():
+            return parallel_map(_worker, [(r, seed, key) for r in range(n)], workers, progress)
     finally:
         _STATE.pop(key, None)
-    return out

@@ -171,6 +171,8 @@ def render_html(rep: dict, diag=None) -> str:
     parts.append("</ul>")
     if "where" in figs:
         parts.append(f"<h2>Where</h2><img src='data:image/png;base64,{figs['where']}'>")
+    for k, png in sorted(((diag.plots.get("extra_png") or {}) if diag is not None else {}).items()):
+        parts.append(f"<p>{e(k)}</p><img src='data:image/png;base64,{png}'>")  # experiment-specific plots
     parts.append("<table><tr><th>view</th><th>run</th><th>channel</th><th>step</th><th>z</th><th>q</th></tr>")
     for w in rep["where"]:
         parts.append(f"<tr><td>{e(w['view'])}</td><td>{e(str(w['run_id']))}</td><td>{e(str(w['channel']))}</td>"

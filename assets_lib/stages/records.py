@@ -9,6 +9,7 @@ time, orchestrator run id and bytes kept), so a rerun changes nothing and a new 
 
 from __future__ import annotations
 
+from assets_lib.navigation.budget import certificate_calibration
 from assets_lib.records import (
     PLOT_SOURCES,
     build_device_records,
@@ -44,13 +45,14 @@ def calibration_record(device: str, inputs) -> StageOutput | None:
     software = software_info()
     built = build_device_records(view, keys, previous, software, utc_now_iso(), inputs.run_id)
     files = {}
+    records = [r for r, _ in built]
     for rec, _ in built:
         rid = rec["content"]["run"]["run_id"]
         ck = capture_key(device, rid)
         plots = {name: png for a in PLOT_SOURCES for name, png in view.pngs(a, ck).items()}
         files[f"{rid}.json"] = record_file_bytes(rec)
-        files[f"{rid}.html"] = certificate_html(rec, plots).encode("utf-8")
-    records = [r for r, _ in built]
+        # the navigation budget of the device calibration at the record's start (assets_lib.navigation.budget)
+        files[f"{rid}.html"] = certificate_html(rec, plots, certificate_calibration(records, rid)).encode("utf-8")
     return StageOutput(
         tables={"records": records_table(records)},
         meta={

@@ -12,6 +12,7 @@ import pandas as pd
 from assets_lib.simreal.diagnose import diagnose_device
 from assets_lib.simreal.experiment import experiment_from_frames
 from assets_lib.simreal.report import _clean, plots, render_html
+from assets_lib.simreal.tablefree_diagnose import diagnose_tablefree
 from assets_lib.stages.spec import StageOutput, stage
 from raw_schemas.manifest import Manifest
 
@@ -29,23 +30,28 @@ WARN_VERDICTS = ("unexplained", "partly_explained", "noise_model")
 @stage("sim_to_real", level="device", group="diagnosis", code_version="1", upstream=["ingested_run"])
 def sim_to_real(device: str, inputs) -> StageOutput | None:
     """Sim-to-real gap diagnosis of one device (where / which effect / how far it shrinks), docs/simreal.md."""
-    frames = []
+    frames, tablefree = [], []
     for k in inputs.keys_of("ingested_run"):
         m = Manifest.model_validate_json(inputs.file("ingested_run", "manifest.json", key=k))
-        if m.test_kind not in TWIN_KINDS:
-            continue  # hand-placed poses have no known orientations: the twin cannot replay them
+        if m.test_kind not in TWIN_KINDS and m.test_kind != "tablefree":
+            continue
         imu = inputs.table("ingested_run", "imu", key=k)
         table = inputs.table("ingested_run", "table", key=k) if inputs.has_table("ingested_run", "table", key=k) else None
-        frames.append((m, imu, table))
-    if not any(m.test_kind in CALIBRATION_KINDS for m, _, _ in frames):
-        return None  # not applicable: no table-driven calibration run to compare the twin with
-    exp = experiment_from_frames(frames)
-    diag = diagnose_device(None, device, replicates=STAGE_REPLICATES, seed=STAGE_SEED, workers=1, experiment=exp)
+        (tablefree if m.test_kind == "tablefree" else frames).append((m, imu, table))
+    if any(m.test_kind in CALIBRATION_KINDS for m, _, _ in frames):
+        exp = experiment_from_frames(frames)  # table runs: the plan twin (hand-moved runs of the device left out)
+        diag = diagnose_device(None, device, replicates=STAGE_REPLICATES, seed=STAGE_SEED, workers=1, experiment=exp)
+    elif tablefree and not frames:  # hand-moved sessions only: the table-free experiment
+        diag = diagnose_tablefree(tablefree, device, replicates=STAGE_REPLICATES, seed=STAGE_SEED, workers=1)
+    else:
+        return None  # not applicable: no calibration run to compare the twin with
     rep = _clean(diag.report)
     figs = plots(diag)
     import base64
 
     pngs = {k: base64.b64decode(v) for k, v in figs.items() if k in ("where", "before_after")}
+    for i, v in enumerate((diag.plots.get("extra_png") or {}).values()):
+        pngs[f"tablefree_{i}"] = base64.b64decode(v)
     where = pd.DataFrame(rep["where"], columns=["view", "run_id", "channel", "step_index", "z", "q_value"])
     where["step_index"] = where["step_index"].astype("Int64")
     effects = pd.DataFrame(rep["effects"], columns=["family", "channel", "magnitude", "ci_lo", "ci_hi", "unit",

@@ -27,7 +27,15 @@ def module_file(name: str, root: Path = ROOT) -> Path | None:
 
 
 def _imported(name: str, path: Path) -> set[str]:
-    """Project modules named by the import statements of one module (anywhere in it, function bodies included)."""
+    """Project modules named by the import statements of one module (anywhere in it, function bodies included).
+    Parsed once per process and file state (stages share most of their closures)."""
+    st = path.stat()
+    return set(_imported_cached(name, str(path), st.st_mtime_ns, st.st_size))
+
+
+@functools.lru_cache(maxsize=4096)
+def _imported_cached(name: str, path_s: str, mtime_ns: int, size: int) -> frozenset[str]:
+    path = Path(path_s)
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
     out: set[str] = set()
@@ -42,7 +50,7 @@ def _imported(name: str, path: Path) -> set[str]:
                 mod = node.module or ""
             out.add(mod)
             out |= {f"{mod}.{a.name}" for a in node.names}  # ``from pkg import module``
-    return {m for m in out if m.split(".")[0] in PROJECT_PACKAGES}
+    return frozenset(m for m in out if m.split(".")[0] in PROJECT_PACKAGES)
 
 
 def _with_parents(name: str) -> list[str]:

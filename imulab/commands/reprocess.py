@@ -37,22 +37,25 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
     home = Path(dagster_home or os.environ.get("DAGSTER_HOME") or data / "dagster_home").resolve()
     if not landing.is_dir():
         raise click.ClickException(f"no archive at {landing}")
+    _hold_workspace(home, store)  # the lock of `imulab run`: one at a time per workspace; released at the end
     if not verbose:
         warnings.filterwarnings("ignore")
     from assets_lib.stages.plan import outcome
     from assets_lib.stages.registry import STAGES
     from assets_lib.store import VersionedStore
     from pipelines import reprocess
-    from pipelines.definitions import build_definitions
     from pipelines.launch import open_instance, register_landed_runs
+    from pipelines.location import build_definitions
     from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
+    from pipelines.workspace import RunState
 
     archive = LabArchive(landing_dir=str(landing))
     vstore = VersionedStore(store)
     defs = build_definitions(str(landing), str(store))
     t0 = time.time()
     with open_instance(home) as instance:
+        RunState(clean=False, store=str(store)).write(home)  # killed from here on: the next `imulab run` checks
         new = register_landed_runs(instance, archive)
         if new:
             click.echo(f"registered {len(new)} newly landed runs")
@@ -68,19 +71,22 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
                 click.echo(f"    ... {len(items) - limit} more")
         for stage, key, reason in plan.failed[: limit or None]:
             click.echo(f"  failed at this version (not retried; --retry-no-output retries): {stage} {key}: {reason}")
+        cap, dev = registered_keys(instance)
         if plan.empty:
+            RunState(clean=True, store=str(store), captures=cap).write(home)
             click.echo("nothing to reprocess")
             return
-        cap, dev = registered_keys(instance)
         runs = reprocess.planned_runs(plan, cap, dev)
         click.echo(f"{len(runs)} batched run(s): " + "; ".join(
             f"{r.job} [{r.first}..{r.last}] {','.join(r.stages)}" if r.first else f"{r.job} {','.join(r.stages)}"
             for r in runs))
         if dry_run:
+            RunState(clean=True, store=str(store), captures=cap).write(home)
             click.echo("dry run: nothing executed")
             return
         t1 = time.time()
         summary = reprocess.run_plan(defs, instance, plan, vstore, quiet=not verbose)
+        RunState(clean=True, store=str(store), captures=cap).write(home)
     for job, run_id, ok in summary.runs:
         click.echo(f"  {'ok  ' if ok else 'FAIL'} {job} run {run_id}")
     done = outcome(vstore, plan)
@@ -99,3 +105,14 @@ def command(landing, store, data_dir, dagster_home, dry_run, retry_no_output, li
             click.echo(f"  ... {stage}: {n - limit} more")
     if not summary.success:
         sys.exit(1)
+
+
+def _hold_workspace(home: Path, store: Path) -> None:
+    """The run lock of ``imulab run`` (pipelines/workspace.py), held until the command ends: a reprocess never
+    writes the store or the instance while a run (or another reprocess) does; it waits, then refuses."""
+    from pipelines.workspace import RunLockedError, acquire_run_lock
+
+    try:
+        click.get_current_context().call_on_close(acquire_run_lock(home, store, echo=click.echo).close)
+    except RunLockedError as e:
+        raise click.ClickException(str(e)) from None

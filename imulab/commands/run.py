@@ -13,6 +13,7 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import click
 
@@ -50,13 +51,8 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
     if not verbose:
         warnings.filterwarnings("ignore")
     from assets_lib.stages.plan import plan_reprocess
-    from assets_lib.stages.registry import STAGES
     from assets_lib.store import LandingArchive, VersionedStore
-
-    try:
-        STAGES = STAGES.without(skip)
-    except KeyError as e:
-        raise click.BadParameter(str(e.args[0]), param_hint="--skip-stage") from None
+    from pipelines.workspace import RunState, note_archive
 
     archive = LandingArchive(landing)
     complete, waiting = archive.complete_runs(), archive.incomplete_runs()
@@ -64,30 +60,83 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
         raise click.BadParameter(f"no run folders (<device>/<run>/) in {landing}", param_hint="--archive")
     vstore = VersionedStore(store)
     t0 = time.time()
-    from pipelines.instance import fail_abandoned_runs, note_archive
+    state = RunState.read(home)
+    graph = _planning_graph(store, skip) if state.covers(store, complete) else None
+    if graph is not None:
+        # the last run finished and registered every completed run: plan without Dagster or the science imports
+        cap = list(state.captures)
+        plan = plan_reprocess(graph, vstore, archive, cap, sorted({k.split("__", 1)[0] for k in cap}))
+        if plan.empty:
+            note_archive(store, landing)
+            click.echo(f"{len(cap)} captured runs registered (0 new) from {landing}")
+            click.echo(f"everything up to date ({plan.up_to_date} partitions checked in {time.time() - t0:.1f} s): "
+                       "nothing launched")
+            _finish(plan, NOTHING_LAUNCHED, vstore, waiting, store, landing, home, t0)
+    from assets_lib.stages import graph_cache
+    from assets_lib.stages.registry import STAGES as ALL_STAGES
+    from pipelines.instance import fail_abandoned_runs
     from pipelines.launch import LaunchSummary, open_instance, register_landed_runs
     from pipelines.partitions import registered_keys
     from pipelines.resources import LabArchive
 
+    graph_cache.prime(ALL_STAGES, store / GRAPH_CACHE)  # when current, spares parsing every stage's sources
+    stages = _without(ALL_STAGES, skip)
     note_archive(store, landing)  # lets `imulab verify` find the archive from the store
     with open_instance(home) as instance:
+        RunState(clean=False, store=str(store)).write(home)  # a run killed from here on leaves clean: false
         for rid in fail_abandoned_runs(instance):
             click.echo(f"marked Dagster run {rid} failed: the process running it was killed before it finished")
         new = register_landed_runs(instance, LabArchive(landing_dir=str(landing)))
         cap, dev = registered_keys(instance)
         click.echo(f"{len(cap)} captured runs registered ({len(new)} new) from {landing}")
-        plan = plan_reprocess(STAGES, vstore, archive, cap, dev)
+        plan = plan_reprocess(stages, vstore, archive, cap, dev)
         summary = LaunchSummary()
         if plan.empty:
             click.echo(f"everything up to date ({plan.up_to_date} partitions checked in {time.time() - t0:.1f} s): "
                        "nothing launched")
         else:
             from pipelines import reprocess
-            from pipelines.definitions import build_definitions
+            from pipelines.location import build_definitions
 
-            defs = build_definitions(str(landing), str(store), stages=STAGES)
+            defs = build_definitions(str(landing), str(store), stages=stages)
             summary = reprocess.run_plan(defs, instance, plan, vstore, quiet=not verbose)
-            plan = plan_reprocess(STAGES, vstore, archive, cap, dev)  # what the store holds now
+            plan = plan_reprocess(stages, vstore, archive, cap, dev)  # what the store holds now
+        RunState(clean=True, store=str(store), captures=cap).write(home)
+    save_planning_graph(ALL_STAGES, store)
+    _finish(plan, summary, vstore, waiting, store, landing, home, t0)
+
+
+#: the launch summary of a run that launched nothing (``print_summary`` reads ``runs`` and ``warnings``)
+NOTHING_LAUNCHED = SimpleNamespace(runs=[], warnings=[])
+#: the planning view of the stage graph, kept in the store (``assets_lib.stages.graph_cache``)
+GRAPH_CACHE = ".imulab-stage-graph.json"
+
+
+def _without(graph, skip):
+    try:
+        return graph.without(skip)
+    except KeyError as e:
+        raise click.BadParameter(str(e.args[0]), param_hint="--skip-stage") from None
+
+
+def _planning_graph(store: Path, skip):
+    """The stage graph (less ``skip``) from the store's planning cache when the sources are unchanged, else None."""
+    from assets_lib.stages import graph_cache
+
+    graph = graph_cache.load(Path(store) / GRAPH_CACHE)
+    return None if graph is None else _without(graph, skip)
+
+
+def save_planning_graph(graph, store: Path) -> None:
+    from assets_lib.stages import graph_cache
+
+    try:
+        graph_cache.save(graph, Path(store) / GRAPH_CACHE)
+    except OSError:  # a read-only store still works, only the next unchanged run is slower
+        pass
+
+
+def _finish(plan, summary, vstore, waiting, store, landing, home, t0):
     for job, run_id, ok in summary.runs:
         click.echo(f"  {'ok  ' if ok else 'FAIL'} {job} run {run_id}")
     click.echo(f"pipeline finished in {time.time() - t0:.1f} s")
@@ -143,8 +192,8 @@ def print_summary(plan, summary, vstore, waiting: list[str], echo=print) -> bool
 
 
 def _hold_workspace(data: Path, store, dagster_home):
-    """One run at a time per Dagster home and store (pipelines/instance.py): a second one waits, then refuses."""
-    from pipelines.instance import RunLockedError, acquire_run_lock
+    """One run at a time per Dagster home and store (pipelines/workspace.py): a second one waits, then refuses."""
+    from pipelines.workspace import RunLockedError, acquire_run_lock
 
     home = Path(dagster_home or os.environ.get("DAGSTER_HOME") or data / "dagster_home")
     try:

@@ -146,6 +146,22 @@ def verify_record(record: dict, landing: Path, rtol: float = FLOAT_RTOL, recompu
     return problems
 
 
+def budget_calibration_problems(cert_path: Path, records: list[dict], run_id: str) -> list[str]:
+    """A certificate's navigation budget is computed from the device calibration embedded in it; that calibration
+    must be the one assembled from the device's (verified) records at the record's start."""
+    from assets_lib.navigation.budget import certificate_calibration
+    from assets_lib.records.certificate import parse_certificate
+
+    emb = parse_certificate(cert_path.read_text(encoding="utf-8")).device_calibration
+    want = certificate_calibration(records, run_id)
+    want_sha = want.to_json()["calibration_sha256"] if want is not None else None
+    got_sha = emb.get("calibration_sha256") if isinstance(emb, dict) else None
+    if got_sha == want_sha:
+        return []
+    return [(f"certificate: the navigation budget's device calibration {str(got_sha)[:16]}... is not the one the "
+             f"device's records assemble at this run's start ({str(want_sha)[:16]}...)")]
+
+
 def locate_workspace(record_path: Path, landing, store_dir, data_dir) -> tuple[Path, Path]:
     """(archive, store) of a record: the options when given; else the store the record lies in
     (``<store>/calibration_record/<device>/<version>/<run>.json``) and the archive that store names in its
@@ -253,6 +269,9 @@ def command(record_path: Path, landing, store_dir, data_dir, shallow, rtol, frac
                           and run_order_key(r["content"]["run"]["start_time_utc"], rid) < limit),
                          key=lambda r: run_order_key(r["content"]["run"]["start_time_utc"], r["content"]["run"]["run_id"]))
         report(f"hash chain of {device} up to {run_id}: {len(earlier) + 1} records, links intact ({chain_dir})", probs)
+        if is_html:
+            report("navigation budget: its embedded device calibration is the one the chain assembles",
+                   budget_calibration_problems(record_path, [r for r in records.values() if "content" in r], run_id))
         for r in earlier:
             rid = r["content"]["run"]["run_id"]
             p = verify_record(r, landing, rtol, recompute=not shallow, fraction=fraction)

@@ -28,7 +28,9 @@ class ClockAlignment:
     then a least-squares (Gauss-Newton) delay fit. ``offset_stderr_s`` is the Cramer-Rao bound of a delay in white
     noise, sigma_e / sqrt(sum (alpha dr/dt)^2) with sigma_e the robust residual scatter: a lower bound that leaves
     out table-log interpolation and time-stamp rounding (sub-microsecond here). ``clock_drift_ppm`` compares the
-    offsets of the two record halves (a clock-rate error is otherwise indistinguishable from a scale factor).
+    offsets of the two record halves, each at its information centroid (where the table rate changes; see
+    ``_delay_crlb_centroid``), then fits the drift over the whole record (``_refine_delay_drift``); a clock-rate
+    error is otherwise indistinguishable from a scale factor.
     Method ``step_centres`` (table log without rotation rate): median of table-step minus quiet-interval centres;
     ``correlation_peak`` then holds the fraction of steps agreeing within two IMU samples.
     """
@@ -119,6 +121,62 @@ def _refine_delay(t_imu, g_proj, t_tab, r_tab, offset, iterations: int = 4) -> f
     return offset
 
 
+def _refine_delay_drift(t_imu, g_proj, t_tab, r_tab, offset, drift, iterations: int = 8) -> tuple[float, float]:
+    """Clock drift by Gauss-Newton on g(t) = alpha r(t + tau_m + d (t - t_m)) + beta over the whole record, from the
+    halves' estimate d; -> (d, its Cramer-Rao standard error), d dimensionless (offset change per IMU second).
+
+    A delay held constant over a half misfits the ramps far from the half's centroid by alpha dr/dt d (t - t_c),
+    tens of noise sigmas at 200 ppm, and the robust inlier test then drops them: the halves alone read the drift
+    5-20 % high or low. Fitting the drift itself keeps every ramp (inliers re-selected each step, as in
+    ``_refine_delay``; only the samples where the table rate changes, the others carry no delay information);
+    standard error from the 2 x 2 information matrix ([KAY1993] eq. 3.18, vector form).
+    """
+    x = t_imu - 0.5 * (t_imu[0] + t_imu[-1])
+    tau = offset
+    # only samples where the table rate changes inform the delay (J = alpha dr/dt (1, t - t_m)): fit on those,
+    # widened by 3 samples on each side so that the ramps stay inside as the delay moves
+    rr = np.interp(t_imu + tau + drift * x, t_tab, r_tab, left=np.nan, right=np.nan)
+    act = np.isfinite(rr)
+    act[act] = np.gradient(rr[act], t_imu[act]) != 0
+    act = np.convolve(act, np.ones(7), mode="same") > 0
+    if act.sum() < 10:
+        return np.nan, np.nan
+    # gain and bias (alpha, beta) from the whole record, mostly its plateaus, as in the constant-delay fit
+    m = _delay_inliers(t_imu, g_proj, rr)
+    if m.sum() < 10:
+        return np.nan, np.nan
+    coef, *_ = np.linalg.lstsq(np.column_stack([rr[m], np.ones(m.sum())]), g_proj[m], rcond=None)
+    h = float(np.median(np.diff(t_imu)))
+    t_imu, g_proj, x = t_imu[act], g_proj[act], x[act]
+    se = np.nan
+    for _ in range(iterations):
+        tt = t_imu + tau + drift * x
+        rr = np.interp(tt, t_tab, r_tab, left=np.nan, right=np.nan)
+        # dr/dt by central differences one IMU sample apart (np.gradient of the full record; the subset has gaps)
+        rdot = (np.interp(tt + h, t_tab, r_tab) - np.interp(tt - h, t_tab, r_tab)) / (2 * h)
+        e = g_proj - coef[0] * rr - coef[1]
+        ok = np.isfinite(e)
+        med = np.median(e[ok])
+        sig_all = MAD_TO_SIGMA * np.median(np.abs(e[ok] - med))
+        m = ok & (np.abs(e - med) <= 5 * sig_all) if sig_all > 0 else ok
+        if m.sum() < 10:
+            return np.nan, np.nan
+        e = e[m]
+        deriv = coef[0] * rdot[m]
+        jac = np.column_stack([deriv, deriv * x[m]])
+        info = jac.T @ jac
+        if not np.linalg.det(info) > 0:
+            return np.nan, np.nan
+        step = np.linalg.solve(info, jac.T @ e)
+        tau += float(step[0])
+        drift += float(step[1])
+        sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
+        se = float(sig * np.sqrt(np.linalg.inv(info)[1, 1]))
+        if abs(step[1]) < 1e-3 * se:  # converged far inside its own uncertainty
+            break
+    return float(drift), se
+
+
 def _delay_inliers(t_imu, g_proj, rr) -> np.ndarray:
     m = np.isfinite(rr)
     if m.sum() < 10:
@@ -134,17 +192,30 @@ def _delay_inliers(t_imu, g_proj, rr) -> np.ndarray:
 
 def _delay_crlb(t_imu, g_proj, t_tab, r_tab, offset, dt) -> float:
     """Cramer-Rao bound of a delay in white noise (Kay, Fundamentals of Statistical Signal Processing I, eq. 3.18)."""
+    return _delay_crlb_centroid(t_imu, g_proj, t_tab, r_tab, offset)[0]
+
+
+def _delay_crlb_centroid(t_imu, g_proj, t_tab, r_tab, offset) -> tuple[float, float]:
+    """(Cramer-Rao bound of the delay, the time the delay estimate refers to).
+
+    The least-squares delay weighs sample i by its Fisher information w_i = (alpha dr/dt)^2 ([KAY1993] eq. 3.18),
+    so when the delay drifts, tau(t) = tau_c + d (t - t_c), the estimate is (to first order) the drifting delay at
+    the information centroid t_c = sum w_i t_i / sum w_i: on a rate plan the table's ramps, not the record's middle.
+    """
     rr = np.interp(t_imu + offset, t_tab, r_tab, left=np.nan, right=np.nan)
     m = _delay_inliers(t_imu, g_proj, rr)
     if m.sum() < 10:
-        return np.nan
+        return np.nan, np.nan
     a_mat = np.column_stack([rr[m], np.ones(m.sum())])
     coef, *_ = np.linalg.lstsq(a_mat, g_proj[m], rcond=None)
     e = g_proj[m] - a_mat @ coef
     sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
     deriv = np.gradient(rr[m], t_imu[m])
-    energy = np.sum((coef[0] * deriv) ** 2)
-    return float(sig / np.sqrt(energy)) if energy > 0 else np.nan
+    w = (coef[0] * deriv) ** 2
+    energy = np.sum(w)
+    if not energy > 0:
+        return np.nan, np.nan
+    return float(sig / np.sqrt(energy)), float(np.sum(w * t_imu[m]) / energy)
 
 
 def table_steps(table: pd.DataFrame) -> dict[int, tuple[float, float]]:
@@ -214,11 +285,17 @@ def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: Segmentat
                 if p < cfg.min_correlation:
                     break
                 o = _refine_delay(ti, gi, t_tab[tsel], r_tab[tsel], o)
-                halves.append((o, _delay_crlb(ti, gi, t_tab[tsel], r_tab[tsel], o, dt), 0.5 * (ti[0] + ti[-1])))
+                se_h, t_c = _delay_crlb_centroid(ti, gi, t_tab[tsel], r_tab[tsel], o)
+                if not np.isfinite(t_c):
+                    break
+                halves.append((o, se_h, t_c))  # each half's offset refers to its information centroid
             if len(halves) == 2:
                 (o1, s1, c1), (o2, s2, c2) = halves
-                drift = (o2 - o1) / (c2 - c1) * 1e6
-                drift_se = np.hypot(s1, s2) / (c2 - c1) * 1e6
+                d0 = (o2 - o1) / (c2 - c1)
+                drift, drift_se = d0 * 1e6, np.hypot(s1, s2) / (c2 - c1) * 1e6  # kept if the joint fit fails
+                d, d_se = _refine_delay_drift(t_imu, gp, t_tab, r_tab, off, d0)
+                if np.isfinite(d) and np.isfinite(d_se):
+                    drift, drift_se = d * 1e6, d_se * 1e6
             return ClockAlignment(off, se, "xcorr_table_rate_parabolic+ls", peak, drift, drift_se, int(t_imu.size))
     # fallback: step centres
     det = detect_quiet_intervals(t_imu, gyro, imu[list(ACCEL_COLUMNS)].to_numpy(dtype=float), cfg.detector)

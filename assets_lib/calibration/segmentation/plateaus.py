@@ -89,11 +89,18 @@ def plateau_columns() -> list[str]:
 
 
 def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
-                config: SegmentationConfig = SegmentationConfig()) -> SegmentationResult:
+                config: SegmentationConfig = SegmentationConfig(),
+                clock_alignment: ClockAlignment | None = None) -> SegmentationResult:
     """Plateau table of one run (docs/design.md PLATEAU TABLE); [SEED003] alignment, [SEED000] whole turns, [SEED001] outliers.
 
     ``n_samples`` counts the samples kept for the means; ``n_rejected`` the outliers removed from the window;
     ``rejected_fraction`` = n_rejected / (n_samples + n_rejected). SEMs per the module docstring.
+
+    ``clock_alignment``: a table-to-IMU alignment computed before (``align_clocks`` of the recorded run), used
+    instead of aligning this run's clocks again. A replicate of a recorded run shares its IMU time stamps and its
+    table log, so the offset is the recording's; with it the plateau windows, and every input that depends only on
+    them, are the same in every replicate. The replicate's clock drift is then the recorded one (not re-estimated
+    from its noise). Ignored without a table log.
     """
     cfg = config
     plan = manifest.plan
@@ -118,7 +125,7 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
 
     if table is not None and len(table):
         method = "table_log"
-        alignment = align_clocks(plan, imu, table, cfg)
+        alignment = clock_alignment if clock_alignment is not None else align_clocks(plan, imu, table, cfg)
         if alignment.method == "none":
             warnings.append("clock alignment failed: offset 0 assumed")
             for k in reasons:

@@ -52,32 +52,54 @@ class TableRateError(Effect):
 @register
 @dataclass(frozen=True)
 class TableWobble(Effect):
-    """Effects.md table wobble / axis tilt: the table axis is tilted by beta = ``tilt_rad`` from the level-frame
-    axis, towards azimuth ``azimuth_rad`` (measured about the nominal axis from level-frame x).
+    """Effects.md table wobble / axis tilt, two rigid-body forms (tilts in rad, small):
 
-    The true orientation is R(k, beta) C_b^l with k the horizontal axis perpendicular to the tilt direction, so
-    the tilt turns with the table as seen from the IMU: horizontal accelerometers read a once-per-revolution
-    g beta sin(theta + phi), and the earth-rate projection changes by the same rotation. A rigid rotation about a
-    fixed axis gives a constant body rate, so the gyro's cross-axis term is constant (it shows as misalignment).
+    * ``tilt_rad`` towards ``azimuth_rad`` (about the nominal axis from level-frame x): the bearing axis itself is
+      tilted, fixed in space. The true orientation is R(k, beta) C_b^l and the table spins about the tilted axis
+      R a, so the body rate is unchanged (a rigid rotation about a body-fixed axis); the tilt turns with the table as
+      seen from the IMU: horizontal accelerometers read a once-per-revolution g beta sin(theta + phi), and the
+      earth-rate projection changes by the same rotation. No gyro term.
+    * ``wobble_rad`` towards ``wobble_azimuth_rad`` (platter frame, at table angle 0): the platter (the IMU mount)
+      is tilted against the spin axis, so its normal cones about the axis once per turn. In the level frame the
+      tilt P(theta) = R(a, theta) W R(a, theta)^T turns with the table; the orientation is P C_b^l and, since P
+      changes with theta, the level-frame rate gains the coning term ([TITTERTON2004] angular rate of a
+      time-varying rotation, d/dt (P C) (P C)^T): w_l' = P w_l + theta_dot (a - P a). In body axes the spin
+      axis is tilted by beta: the gyro reads a constant cross-axis omega beta (proportional to the table rate,
+      like a misalignment of this mount) and the accelerometers a constant g beta; no once-per-revolution term.
     """
 
     family = "table_wobble"
     stage = "table"
     tilt_rad: float = 0.0
     azimuth_rad: float = 0.0
+    wobble_rad: float = 0.0
+    wobble_azimuth_rad: float = 0.0
 
-    def tilt_rotation(self, axis_level: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _tip(axis_level: np.ndarray, beta: float, azimuth: float) -> np.ndarray:
         a = np.asarray(axis_level, dtype=float)
         e1 = np.cross(a, [0.0, 1.0, 0.0]) if abs(a[0]) < 0.9 else np.cross(a, [0.0, 0.0, 1.0])
         e1 = np.cross(e1, a)
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(a, e1)
-        d = np.cos(self.azimuth_rad) * e1 + np.sin(self.azimuth_rad) * e2  # tilt direction
-        return rotation_about(np.cross(a, d), self.tilt_rad)  # tips the axis a towards d by tilt_rad
+        d = np.cos(azimuth) * e1 + np.sin(azimuth) * e2  # tilt direction
+        return rotation_about(np.cross(a, d), beta)  # tips the axis a towards d by beta
+
+    def tilt_rotation(self, axis_level: np.ndarray) -> np.ndarray:
+        return self._tip(axis_level, self.tilt_rad, self.azimuth_rad)
 
     def perturb(self, m: TableMotion) -> TableMotion:
-        r = self.tilt_rotation(m.axis_level)
-        return replace(m, c_b2l=r @ m.c_b2l, omega_motion_level_radps=m.omega_motion_level_radps @ r.T)
+        c, wl = m.c_b2l, m.omega_motion_level_radps
+        if self.wobble_rad:
+            a = np.asarray(m.axis_level, dtype=float)
+            rt = rotation_about(a, m.table_angle_rad)  # (n, 3, 3)
+            p = rt @ self._tip(a, self.wobble_rad, self.wobble_azimuth_rad) @ np.swapaxes(rt, 1, 2)
+            c = p @ c
+            wl = np.einsum("nij,nj->ni", p, wl) + m.table_rate_radps[:, None] * (a - p @ a)
+        if self.tilt_rad:
+            r = self.tilt_rotation(m.axis_level)
+            c, wl = r @ c, wl @ r.T
+        return replace(m, c_b2l=c, omega_motion_level_radps=wl)
 
 
 @register
