@@ -38,7 +38,7 @@ def test_basis_is_ieee_c23():
 
 
 def test_exact_recovery_on_model_curve():
-    p = AllanParams(q=3e-7, n=0.07 * D2R / 60, b=2 * D2R / 3600, k=14 * D2R / 3600 / 60, r=2e-9)
+    p = AllanParams(q=3e-7, n=0.07 * D2R / 60, b=2 * D2R / 3600, k=14 * D2R / 3600 / 60, r=0.0)
     res = _model_result(p)
     fit = ni.fit_noise(res, max_m_fraction=0.5)
     for name, true in (("N", p.n), ("B", p.b), ("K", p.k)):
@@ -53,6 +53,19 @@ def test_exact_recovery_on_model_curve():
     assert fit.parameter("K").value_lab == pytest.approx(14.0, rel=1e-6)
     assert fit.parameter("K").unit_lab == "deg/h/sqrt(h)"
     np.testing.assert_allclose(fit.model_avar(res.tau_s), res.avar, rtol=1e-6)
+
+
+def test_term_below_the_curves_resolution_is_dropped_and_bounded():
+    """R = 2e-9 rad/s^2 is far inside R's interval on this curve: the fit drops it (it would bias the others),
+    bounds it with the truth below the bound, and the other terms stay inside their intervals."""
+    p = AllanParams(q=3e-7, n=0.07 * D2R / 60, b=2 * D2R / 3600, k=14 * D2R / 3600 / 60, r=2e-9)
+    fit = ni.fit_noise(_model_result(p), max_m_fraction=0.5)
+    r = fit.parameter("R")
+    assert r.is_upper_bound and p.r < r.ci_hi
+    assert fit.theta[fit.terms.index("R")] == 0.0
+    for name, true in (("Q", p.q), ("N", p.n), ("B", p.b), ("K", p.k)):
+        q = fit.parameter(name)
+        assert not q.is_upper_bound and q.ci_lo < true < q.ci_hi
 
 
 def test_absent_terms_are_upper_bounds():

@@ -8,11 +8,18 @@ sigma in [s sqrt(nu / chi2_{1-a/2}(nu)), s sqrt(nu / chi2_{a/2}(nu))], nu = Q - 
 
 The sample standard deviation includes each run's own estimation noise. When the per-run standard errors are
 known, the noise-corrected value sqrt(max(0, s^2 - mean(se^2))) is also reported (method of moments): it is
-what the device itself repeats to, whereas s is the seed's (and the standards') definition.
+what the device itself repeats to, whereas s is the seed's (and the standards') definition. Its interval is the
+modified large-sample (MLS) interval of a difference of two variance estimates ([BURDICK1992] sec. 3.3, eqs.
+3.19-3.20, after [TING1990]): theta = E(s^2) - E(mean se^2) with s^2 on nu_1 degrees of freedom (Satterthwaite's
+[SATTERTHWAITE1946] nu_1 when the runs' noise variances differ) and mean(se^2) on nu_2 (Satterthwaite over the
+runs' standard-error degrees of freedom; infinite when the standard errors are taken as known, where the interval
+is the exact chi-square interval of E(s^2) shifted by mean(se^2)). The limits on theta are truncated at zero and
+square-rooted (an interval on a standard deviation).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +44,8 @@ class Repeatability:
     within_run_stderr_rms: float  # RMS of the per-run standard errors (NaN if not given)
     std_noise_corrected: float
     relative: bool
+    noise_corrected_ci_low: float = float("nan")  #: MLS interval ([BURDICK1992] 3.19-3.20) at ``confidence``
+    noise_corrected_ci_high: float = float("nan")
 
     def estimate(self, unit: str) -> Coefficient:
         """The repeatability as a :class:`Coefficient` with its chi-square interval at ``confidence``."""
@@ -44,8 +53,32 @@ class Repeatability:
                            self.confidence)
 
 
-def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95) -> Repeatability:
-    """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI."""
+def mls_difference_interval(s1: float, nu1: float, s2: float, nu2: float, confidence: float = 0.95
+                            ) -> tuple[float, float]:
+    """[BURDICK1992] eqs. 3.19-3.20 ([TING1990]): MLS interval on theta = E(s1) - E(s2) for independent variance
+    estimates s1 ~ E(s1) chi2_nu1 / nu1 and s2 ~ E(s2) chi2_nu2 / nu2 (nu2 = inf: s2 known, exact shift)."""
+    a = 1.0 - confidence
+    th = s1 - s2
+    c1lo, c1hi = stats.chi2.ppf(1 - a / 2, nu1), stats.chi2.ppf(a / 2, nu1)
+    g1, h1 = 1.0 - nu1 / c1lo, nu1 / c1hi - 1.0
+    if not np.isfinite(nu2) or s2 == 0.0:
+        return th - g1 * s1, th + h1 * s1
+    c2lo, c2hi = stats.chi2.ppf(1 - a / 2, nu2), stats.chi2.ppf(a / 2, nu2)
+    g2, h2 = 1.0 - nu2 / c2lo, nu2 / c2hi - 1.0
+    f_hi = stats.f.ppf(1 - a / 2, nu1, nu2)
+    f_lo = stats.f.ppf(a / 2, nu1, nu2)
+    g12 = ((f_hi - 1.0) ** 2 - g1**2 * f_hi**2 - h2**2) / f_hi
+    h12 = ((1.0 - f_lo) ** 2 - h1**2 * f_lo**2 - g2**2) / f_lo
+    vl = g1**2 * s1**2 + h2**2 * s2**2 + g12 * s1 * s2
+    vu = h1**2 * s1**2 + g2**2 * s2**2 + h12 * s1 * s2
+    return th - math.sqrt(max(vl, 0.0)), th + math.sqrt(max(vu, 0.0))
+
+
+def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95,
+                  stderr_dofs=None) -> Repeatability:
+    """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI; with
+    ``stderrs`` also the noise-corrected std and its MLS interval (module doc; ``stderr_dofs``: degrees of
+    freedom of each run's squared standard error, default infinite = known)."""
     v = np.asarray(values, float)
     ok = np.isfinite(v)
     v = v[ok]
@@ -61,13 +94,32 @@ def repeatability(values, stderrs=None, *, relative: bool = False, confidence: f
     lo = s * np.sqrt(nu / stats.chi2.ppf(1 - a / 2, nu))
     hi = s * np.sqrt(nu / stats.chi2.ppf(a / 2, nu))
     sse = s / np.sqrt(2 * nu)
-    rms_se = float(np.sqrt(np.mean(se**2))) if se is not None and np.all(np.isfinite(se)) else nan
+    have_se = se is not None and np.all(np.isfinite(se))
+    rms_se = float(np.sqrt(np.mean(se**2))) if have_se else nan
     corr = float(np.sqrt(max(s**2 - rms_se**2, 0.0))) if np.isfinite(rms_se) else nan
+    c_lo = c_hi = nan
+    if have_se:
+        e2 = se**2
+        # [SATTERTHWAITE1946] df of s^2 when the runs' variances v_i = sigma^2 + se_i^2 differ (a quadratic form
+        # x'(I - J/q)x / (q - 1) of independent normals): E(s^2) = mean(v),
+        # Var(s^2) = 2 (sum v^2 (1 - 2/q) + (sum v)^2 / q^2) / (q - 1)^2; nu_1 = 2 E^2 / Var (= q - 1 if equal)
+        vi = max(s**2 - rms_se**2, 0.0) + e2
+        var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / nu**2
+        nu1 = float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(nu)
+        d = None if stderr_dofs is None else np.asarray(stderr_dofs, float)[ok]
+        if d is None or not np.all(np.isfinite(d)):
+            nu2 = math.inf
+        else:
+            den = float(np.sum(e2**2 / np.maximum(d, 1e-9)))
+            nu2 = float(np.sum(e2) ** 2 / den) if den > 0 else math.inf
+        t_lo, t_hi = mls_difference_interval(s**2, nu1, rms_se**2, nu2, confidence)
+        c_lo, c_hi = math.sqrt(max(t_lo, 0.0)), math.sqrt(max(t_hi, 0.0))
     if relative:
         d = abs(m)
         s, lo, hi, sse = s / d, lo / d, hi / d, sse / d
-        rms_se, corr = rms_se / d, corr / d
-    return Repeatability(q, m, float(s), float(sse), float(lo), float(hi), confidence, rms_se, corr, relative)
+        rms_se, corr, c_lo, c_hi = rms_se / d, corr / d, c_lo / d, c_hi / d
+    return Repeatability(q, m, float(s), float(sse), float(lo), float(hi), confidence, rms_se, corr, relative,
+                         float(c_lo), float(c_hi))
 
 
 def bias_repeatability(biases, stderrs=None, *, confidence: float = 0.95) -> Repeatability:
@@ -83,7 +135,8 @@ def scale_factor_repeatability(scale_factors, stderrs=None, *, confidence: float
 REPEATABILITY_COLUMNS = [
     "device_id", "sensor", "axis", "coefficient", "method", "n_runs", "run_ids", "value", "stderr", "ci_low", "ci_high",
     "confidence", "unit", "value_lab", "stderr_lab", "ci_low_lab", "ci_high_lab", "unit_lab",
-    "within_run_stderr_rms", "value_noise_corrected", "value_noise_corrected_lab",
+    "within_run_stderr_rms", "value_noise_corrected", "value_noise_corrected_lab", "noise_corrected_ci_low",
+    "noise_corrected_ci_high", "noise_corrected_ci_low_lab", "noise_corrected_ci_high_lab",
 ]
 
 
@@ -107,6 +160,9 @@ def repeatability_table(coefficients: pd.DataFrame, *, confidence: float = 0.95)
             stderr_lab=in_lab.stderr, ci_low_lab=in_lab.ci_low, ci_high_lab=in_lab.ci_high, unit_lab=lab.lab,
             within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,
             value_noise_corrected_lab=lab.to_lab(r.std_noise_corrected),
+            noise_corrected_ci_low=r.noise_corrected_ci_low, noise_corrected_ci_high=r.noise_corrected_ci_high,
+            noise_corrected_ci_low_lab=lab.to_lab(r.noise_corrected_ci_low),
+            noise_corrected_ci_high_lab=lab.to_lab(r.noise_corrected_ci_high),
         ))
     return pd.DataFrame(rows, columns=REPEATABILITY_COLUMNS)
 
@@ -114,8 +170,8 @@ def repeatability_table(coefficients: pd.DataFrame, *, confidence: float = 0.95)
 # ------------------------------------------------------------------------------------------------------------
 # Static power-cycled runs: turn-on bias and noise-term repeatability ([SEED000], the turn-on to turn-on test)
 # ------------------------------------------------------------------------------------------------------------
-STATIC_RUN_COLUMNS = ["run_id", "power_cycle_index", "channel", "duration_s", "bias", "bias_stderr", "N", "N_stderr",
-                      "B", "B_stderr", "unit", "noise_warnings"]
+STATIC_RUN_COLUMNS = ["run_id", "power_cycle_index", "channel", "duration_s", "bias", "bias_stderr", "bias_stderr_dof",
+                      "N", "N_stderr", "B", "B_stderr", "unit", "noise_warnings"]
 
 
 def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: float, units: dict | None = None
@@ -139,32 +195,39 @@ def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: f
 def static_terms_row(run_id: str, power_cycle_index: int, channel: str, mean: float, duration_s: float, fit,
                      unit: str = "") -> dict:
     """One row of :data:`STATIC_RUN_COLUMNS` from a channel's record mean and its fitted noise model ``fit``
-    (a ``NoiseFit``): bias standard error sqrt(sigma_A^2(T)) at the record length T, N and B with standard errors
+    (a ``NoiseFit``): bias standard error sqrt(sigma_A^2(T)) at the record length T with the degrees of freedom of
+    sigma_A^2(T) (Satterthwaite, 2 sigma_A^4 / Var from the fit's theta covariance), N and B with standard errors
     from their 95 % intervals / 3.92 (NaN when only bounded)."""
-    se_bias = float(np.sqrt(max(fit.model_avar(np.array([duration_s]))[0], 0.0)))
+    avar_t, dof_t = fit.model_avar_dof(np.array([duration_s]))
+    se_bias = float(np.sqrt(max(avar_t[0], 0.0)))
     n, b = fit.parameter("N"), fit.parameter("B")
 
     def val(p):
         return (np.nan, np.nan) if p.is_upper_bound else (p.value, (p.ci_hi - p.ci_lo) / 3.92)
 
     return dict(run_id=run_id, power_cycle_index=power_cycle_index, channel=channel, duration_s=duration_s,
-                bias=mean, bias_stderr=se_bias, N=val(n)[0], N_stderr=val(n)[1], B=val(b)[0], B_stderr=val(b)[1],
+                bias=mean, bias_stderr=se_bias, bias_stderr_dof=float(dof_t[0]), N=val(n)[0], N_stderr=val(n)[1], B=val(b)[0], B_stderr=val(b)[1],
                 unit=unit, noise_warnings=" | ".join(fit.warnings))
 
 
 STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value", "ci_low", "ci_high", "relative",
-                                "within_run_stderr_rms", "value_noise_corrected", "unit", "confidence"]
+                                "within_run_stderr_rms", "value_noise_corrected", "noise_corrected_ci_low",
+                                "noise_corrected_ci_high", "unit", "confidence"]
 
 
 def static_repeatability(runs: pd.DataFrame, *, confidence: float = 0.95) -> pd.DataFrame:
     """[SEED000] eq. 23 over power-cycled static runs: per channel the bias repeatability (std of the turn-on
-    biases, absolute, with the noise-corrected value) and the repeatability of the N and B terms (relative std)."""
+    biases, absolute, with the noise-corrected value and its MLS interval) and the repeatability of the N and B
+    terms (relative std)."""
     rows = []
     for ch, g in runs.groupby("channel", sort=True):
         for q, rel in (("bias", False), ("N", True), ("B", True)):
-            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence)
+            dofs = g["bias_stderr_dof"] if (q == "bias" and "bias_stderr_dof" in g) else None
+            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence, stderr_dofs=dofs)
             rows.append(dict(channel=ch, quantity=f"{q}_repeatability", n_runs=r.n_runs, mean=r.mean, value=r.std,
                              ci_low=r.ci_low, ci_high=r.ci_high, relative=rel,
                              within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,
+                             noise_corrected_ci_low=r.noise_corrected_ci_low,
+                             noise_corrected_ci_high=r.noise_corrected_ci_high,
                              unit="1" if rel else str(g["unit"].iloc[0]), confidence=confidence))
     return pd.DataFrame(rows, columns=STATIC_REPEATABILITY_COLUMNS)

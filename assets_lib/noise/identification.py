@@ -7,13 +7,21 @@ Estimator: the model is linear in theta = (Q^2, N^2, B^2, K^2, R^2[, ...]). The 
 points are heteroscedastic and strongly correlated across tau, so they are fitted by non-negative generalised
 least squares with their covariance V evaluated at the current model (iterated):
 - variances V_jj = 2 sigma^4_model(tau_j) / edf_j, edf from [GREENHALL2003] at the model's local
-  power-law exponent (interpolated between integer alphas);
+  power-law exponent (interpolated between integer alphas), or the sampled-data large-n variance below when
+  that is larger (m = 1: white rate samples give EDF 2n/3, Greenhall's filter F = m 0.78 n);
 - correlations from the large-n Gaussian approximation
-  Cov(s2_j, s2_k) ~ min(n_j, n_k) / (2 n_j n_k tau0) * integral S(f)^2 |G_j(f)|^2 |G_k(f)|^2 df,
-  |G_tau(f)|^2 = 4 sin^4(pi f tau)/(pi f tau)^2, S the model's two-sided rate PSD (the generalisation of
-  [VACCARO2012] to the [IEEE952] mixture).
-Each theta_k gets a Wald covariance (X' V^-1 X)^-1 and a Satterthwaite chi-square interval (theta is a variance);
-a term whose Wald interval reaches zero is reported as a one-sided upper bound, not as a number.
+  Cov(s2_j, s2_k) ~ min(n_j, n_k) / (n_j n_k tau0) * integral_0^{fs/2} S(f)^2 |H_j(f)|^2 |H_k(f)|^2 df,
+  |H_m(f)|^2 = 4 sin^4(pi f m tau0)/(m sin(pi f tau0))^2 (sampled rate data), S the model's two-sided rate PSD
+  (the generalisation of [VACCARO2012] to the [IEEE952] mixture).
+Terms the data do not support are eliminated backwards (a term whose two-sided Wald interval reaches zero is
+dropped, the least significant first, and the rest refitted: a boundary term biases its collinear neighbours);
+each kept theta_k gets the active-set Wald covariance (X_A' V^-1 X_A)^-1 ([LAWSON1974]: terms at zero are
+constraints) and a Satterthwaite chi-square interval (theta is a variance); a dropped term is reported as a
+one-sided upper bound (the upper end of its two-sided interval when added alone to the kept terms: the report
+switches between the two without losing coverage, [FELDMAN1998]), not as a number. The Markov correlation time
+comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
+interval is the union of its intervals over that set. benchmarks/coverage_noise.py measures the coverage of
+every printed interval.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
 when terms overlap ([GUERRIER2016]) and benchmarks/mc_noise_id.py measures by how much.
@@ -121,8 +129,28 @@ def avar_correlation(
     tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
 ) -> np.ndarray:
     """Large-n Gaussian correlation of overlapping AVAR estimates at a model ([VACCARO2012], generalised)."""
+    cov = avar_covariance_large_n(tau_s, n_terms, theta, rate_hz, tc_s)
+    d = np.sqrt(np.diag(cov))
+    R = cov / np.outer(d, d)
+    np.fill_diagonal(R, 1.0)
+    return R
+
+
+def avar_covariance_large_n(
+    tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
+) -> np.ndarray:
+    """Large-n Gaussian covariance of overlapping AVAR estimates of sampled rate data at a model.
+
+    With d^j_i the second differences at tau_j = m_j tau0 (A_j = mean(d^j^2) / 2), for a Gaussian model
+    Cov(A_j, A_k) ~ min(n_j, n_k) / (n_j n_k tau0) * int_0^{fs/2} S(f)^2 |H_j(f)|^2 |H_k(f)|^2 df
+    (Isserlis and Parseval; [VACCARO2012] generalised to the [IEEE952] mixture), S the two-sided rate PSD and
+    |H_m(f)|^2 = 4 sin^4(pi f m tau0) / (m sin(pi f tau0))^2 the transfer of m-sample averages differenced at lag
+    m: the transfer of sampled data, exact at m = 1 where the continuous 4 sin^4(pi f tau) / (pi f tau)^2 (and
+    [GREENHALL2003]'s filter F = m) overstate the white-noise degrees of freedom by 17 %.
+    """
     tau = np.asarray(tau_s, dtype=float)
     tau0 = 1.0 / rate_hz
+    m = np.maximum(np.rint(tau / tau0), 1.0)
     f_lo = 1e-3 / tau.max()
     f_hi = 0.5 * rate_hz
     c = 8.0  # above f tau = c the sin^4 factor is replaced by its mean 3/8
@@ -134,7 +162,7 @@ def avar_correlation(
     u = np.pi * np.outer(f, tau)  # (grid, taus)
     fast = np.outer(f, tau) > c
     s4 = np.where(fast, 3.0 / 8.0, np.sin(u) ** 4)
-    G = 4.0 * s4 / u**2
+    G = 4.0 * s4 / (np.outer(np.sin(np.pi * f * tau0), m)) ** 2
     Wv = (S**2 * df)[:, None]
     I = (G * Wv).T @ G
     # diagonal: the mean of sin^8 is 35/128, not (3/8)^2
@@ -142,11 +170,7 @@ def avar_correlation(
     I[np.diag_indices_from(I)] = diag
     n = np.asarray(n_terms, dtype=float)
     nmin = np.minimum.outer(n, n)
-    cov = nmin / np.outer(n, n) * I
-    d = np.sqrt(np.diag(cov))
-    R = cov / np.outer(d, d)
-    np.fill_diagonal(R, 1.0)
-    return R
+    return nmin / np.outer(n, n) * I / tau0
 
 
 def _edf_mix(tau: np.ndarray, parts: np.ndarray, alphas: np.ndarray, m: np.ndarray, n_phase: int) -> np.ndarray:
@@ -251,6 +275,29 @@ class NoiseFit:
     def model_avar(self, tau_s: np.ndarray) -> np.ndarray:
         parts = self.term_avar(tau_s)
         return np.sum(list(parts.values()), axis=0) if parts else np.zeros(np.shape(tau_s))
+
+    def design(self, tau_s: np.ndarray) -> np.ndarray:
+        """Columns g_k(tau) of the fitted terms ([IEEE952] C.23, C.25, C.27): sigma^2(tau) = design @ theta."""
+        tau = np.asarray(tau_s, dtype=float)
+        cols = []
+        for t in self.terms:
+            if t in TERMS:
+                cols.append(basis(tau, (t,))[:, 0])
+            elif t == "M":
+                cols.append(markov_avar_unit(tau, self.markov_tc_s))
+            else:
+                cols.append(sinusoid_avar_unit(tau, self.sin_f0_hz))
+        return np.column_stack(cols)
+
+    def model_avar_dof(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The model AVAR at ``tau_s`` and its degrees of freedom 2 sigma^4 / (g' C g) (Satterthwaite, C the
+        Wald covariance of theta; inf when C gives it no variance)."""
+        g = self.design(tau_s)
+        a = g @ self.theta
+        var = np.einsum("ij,jk,ik->i", g, self.theta_cov, g)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dof = np.where(var > 0, 2.0 * a**2 / var, np.inf)
+        return a, dof
 
     def parameter(self, name: str, method: str = "fit") -> NoiseParameter:
         for p in self.parameters if method == "fit" else self.slope_parameters:
@@ -439,8 +486,13 @@ def fit_noise(
         model = np.where(model > 0, model, a)
         edf = _edf_mix(tau, np.clip(parts, 0, None), alphas, m, n_phase)
         th = {t: float(v) for t, v in zip(term_list, theta_vec)}
-        R = avar_correlation(tau, n, th, res.rate_hz, tc)
-        d = np.sqrt(2.0 * model**2 / edf)
+        C = avar_covariance_large_n(tau, n, th, res.rate_hz, tc)
+        dl = np.sqrt(np.diag(C))
+        R = C / np.outer(dl, dl)
+        np.fill_diagonal(R, 1.0)
+        # variance: [GREENHALL2003] (finite-length effects at long taus) unless the sampled-data large-n variance
+        # is larger (m = 1: white rate samples have EDF 2n/3, Greenhall's filter F = m gives 0.78 n)
+        d = np.maximum(np.sqrt(2.0 * model**2 / edf), dl)
         return _regularise(R * np.outer(d, d))
 
     # start: diagonal weights from the measured points ([NIST1065] EDF of the identified noise)
@@ -475,20 +527,30 @@ def fit_noise(
             delta, V = _discrepancy(Xd, a, Vstat, np.maximum(Xd @ theta, 1e-300))
             if delta == 0.0:
                 break
-    theta, rss = _nn_gls(Xd, a, V)
-    L = np.linalg.cholesky(V)
-    Xw = np.linalg.solve(L, Xd)
-    info = Xw.T @ Xw
-    cov = np.linalg.pinv(info)
-    params, slope_params = [], []
     z2 = stats.norm.ppf(0.5 + ci_level / 2.0)
-    z1 = stats.norm.ppf(ci_level)
+    profile = None
+    if markov:
+        # T_c by profile GLS chi2 on a fine grid (the coarse grid above only seeded the weights); the Markov
+        # intervals below carry T_c's uncertainty: the profile set chi2(T_c) <= min + chi2_1(ci_level)
+        fine = np.geomspace(tau.min() * 2, tau.max() / 2, 97)
+        chis = np.array([_nn_gls(design(t_, f0), a, V)[1] for t_ in fine])
+        tc = float(fine[int(np.argmin(chis))])
+        Xd = design(tc, f0)
+        # the GLS chi2 differences are scaled by the dispersion chi2_min / dof when it exceeds 1 (quasi-likelihood
+        # profile: weights that understate the scatter would make the T_c set too narrow)
+        disp = max(1.0, float(chis.min()) / max(len(a) - Xd.shape[1] - 1, 1))
+        profile = fine[chis <= chis.min() + disp * stats.chi2.ppf(ci_level, 1)]
+    theta, rss, cov, sd_all, bound_theta = _significant_terms(Xd, a, V, z2)
+    params, slope_params = [], []
     for k, t in enumerate(term_list):
-        th, sd = float(theta[k]), float(math.sqrt(max(cov[k, k], 0.0)))
+        th, sd = float(theta[k]), float(sd_all[k])
         name = {"M": "markov_q", "S": "sin_amplitude"}.get(t, t)
-        if th <= 0 or th - z2 * sd <= 0:
-            ub = max(th, 0.0) + z1 * sd
-            ub_val = _theta_to_param(t, ub, tc)
+        if t == "M" and profile is not None:
+            params.append(_markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level,
+                                          k not in bound_theta, th, sd, tc, bound_theta.get(k)))
+            continue
+        if k in bound_theta:
+            ub_val = _theta_to_param(t, bound_theta[k], tc)
             params.append(_param(name, math.nan, 0.0, ub_val, sensor, "fit", True, ci_level))
         else:
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
@@ -510,7 +572,9 @@ def fit_noise(
                 )
             )
     if markov:
-        params.append(_param("markov_tc", tc, tc, tc, sensor, "fit", False, ci_level))
+        # profile-likelihood set of T_c (an interval when the Markov term is supported, else the grid searched)
+        tlo, thi = (float(profile.min()), float(profile.max())) if profile is not None else (tc, tc)
+        params.append(_param("markov_tc", tc, tlo, thi, sensor, "fit", False, ci_level))
     if sinusoid:
         params.append(_param("sin_freq", f0, f0, f0, sensor, "fit", False, ci_level))
     slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level, min_edf=min_edf, tau_min_s=tau_min_s,
@@ -544,6 +608,96 @@ def fit_noise(
         outside_tau_ranges=outside,
         warnings=tuple(warns),
     )
+
+
+def _satterthwaite(th: float, sd: float, ci_level: float) -> tuple[float, float]:
+    """theta_hat ~ theta chi2_nu / nu with nu = 2 theta^2 / sd^2 ([SATTERTHWAITE1946]): interval on theta."""
+    nu = 2.0 * th**2 / sd**2
+    return (nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu), nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu))
+
+
+def _markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level, supported, th, sd, tc, bound):
+    """markov_q = sqrt(theta_M) / T_c with T_c's uncertainty: the union over the profile set of T_c of the
+    Satterthwaite intervals at each T_c (a profile / projection interval); an upper bound (the largest over the
+    set) when the term is not supported."""
+    los, his, ubs = [], [], []
+    for t_ in profile:
+        th_t, rss_t, cov_t, sd_t, b_t = _significant_terms(design(t_, f0), a, V, z2)
+        if k in b_t:
+            ubs.append(_theta_to_param("M", b_t[k], t_))
+        else:
+            lo, hi = _satterthwaite(float(th_t[k]), float(sd_t[k]), ci_level)
+            los.append(_theta_to_param("M", lo, t_))
+            his.append(_theta_to_param("M", hi, t_))
+            ubs.append(his[-1])
+    if not supported or len(los) < len(profile):  # unsupported somewhere in the T_c set: lower limit 0
+        ub = max(ubs + ([_theta_to_param("M", bound, tc)] if bound is not None else []))
+        return _param("markov_q", math.nan, 0.0, ub, sensor, "fit", True, ci_level)
+    val = _theta_to_param("M", th, tc)
+    lo, hi = min(los), max(his)
+    return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th))
+
+
+def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float):
+    """Non-negative GLS with backward elimination of the terms the data do not support.
+
+    A term whose two-sided Wald interval reaches zero (theta - z2 sd <= 0) is dropped, the least significant
+    first, and the rest refitted, until every remaining term is significant. Keeping unsupported terms at the
+    boundary biases the others: a quantization term fitted to white noise is positive half the time and, being
+    collinear with N at short taus, pulls N down by half its standard error (benchmarks/coverage_noise.py).
+    A dropped term is reported as an upper bound: the upper end of its two-sided interval when it is added alone to
+    the final terms (the same interval a two-sided report would print, so the report switching between the two
+    keeps its coverage: [FELDMAN1998]). Returns theta (dropped terms 0), the GLS chi2, the active-set covariance,
+    one standard deviation per term and {index: upper bound on theta} of the dropped terms.
+    """
+    p = Xd.shape[1]
+    L = np.linalg.cholesky(V)
+    Xw = np.linalg.solve(L, Xd)
+    info = Xw.T @ Xw
+    keep = list(range(p))
+    while True:
+        th_k, rss = _nn_gls(Xd[:, keep], a, V)
+        theta = np.zeros(p)
+        theta[keep] = th_k
+        cov, sd = _active_set_covariance(info, theta, keep)
+        weak = [k for k in keep if theta[k] <= 0 or theta[k] - z2 * sd[k] <= 0]
+        if not weak or len(keep) == 1:
+            break
+        keep.remove(min(weak, key=lambda k: theta[k] / sd[k] if sd[k] > 0 else 0.0))
+    bounds = {}
+    for k in range(p):
+        if k in keep and theta[k] > 0 and theta[k] - z2 * sd[k] > 0:
+            continue
+        idx = sorted(set(keep) | {k})
+        t2, _ = _nn_gls(Xd[:, idx], a, V)
+        th2 = np.zeros(p)
+        th2[idx] = t2
+        _, sd2 = _active_set_covariance(info, th2, idx)
+        bounds[k] = float(max(th2[k], 0.0) + z2 * sd2[k])
+    return theta, rss, cov, sd, bounds
+
+
+def _active_set_covariance(info: np.ndarray, theta: np.ndarray, allowed=None) -> tuple[np.ndarray, np.ndarray]:
+    """Wald covariance of the non-negative GLS fit on its active set ([LAWSON1974]: the terms at zero are
+    constraints, not parameters): (X_A' V^-1 X_A)^-1 for the terms with theta > 0, zero rows for the others.
+    Also one standard deviation per term: the active set's for an active term; for a term at zero (among
+    ``allowed``), its standard deviation when it is added alone to the active set. The full
+    inverse would charge every estimate with the collinearity of terms the data put at zero (e.g. Q against N at
+    short taus), widening the intervals of white-noise N by ~1.5x (benchmarks/coverage_noise.py)."""
+    p = len(theta)
+    act = np.flatnonzero(theta > 0)
+    cov = np.zeros((p, p))
+    sd = np.zeros(p)
+    if act.size:
+        cov[np.ix_(act, act)] = np.linalg.pinv(info[np.ix_(act, act)])
+        sd[act] = np.sqrt(np.maximum(np.diag(cov)[act], 0.0))
+    for k in np.flatnonzero(theta <= 0):
+        if allowed is not None and k not in allowed:
+            continue
+        idx = np.append(act, k)
+        c = np.linalg.pinv(info[np.ix_(idx, idx)])
+        sd[k] = math.sqrt(max(c[-1, -1], 0.0))
+    return cov, sd
 
 
 def _replace(fit: NoiseFit, **changes) -> NoiseFit:

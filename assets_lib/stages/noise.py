@@ -23,30 +23,36 @@ def allan_deviation(key: str, inputs) -> StageOutput:
     """Overlapping Allan deviation ([SEED002] eq. 4) per channel with chi-square intervals, and the IEEE 952
     Annex C fit (Q, N, B, K, R with intervals; unsupported terms as upper bounds) beside the slope readings."""
     imu = inputs.table("ingested_run", "imu")
-    rate_hz = float(inputs.meta("ingested_run").get("sample_rate_hz") or 1.0 / np.median(np.diff(imu.time_s)))
+    m = inputs.meta("ingested_run")
+    tables, meta, summary, results, fits = allan_tables(key, imu, m)
+    plots = {
+        "allan_gyro": plot_allan({c: results[c] for c in GYRO_COLUMNS}, {c: fits[c] for c in GYRO_COLUMNS}, title=f"{key}: gyro"),
+        "allan_accel": plot_allan({c: results[c] for c in ACCEL_COLUMNS}, {c: fits[c] for c in ACCEL_COLUMNS}, title=f"{key}: accel"),
+    }
+    return StageOutput(tables=tables, meta=meta, summary=summary, plots=plots)
+
+
+def allan_tables(key: str, imu: pd.DataFrame, m: dict):
+    """The stage's computation without its plots (benchmarks/coverage_noise.py scores exactly this): tables
+    ``allan``, ``noise``, ``static_terms``, the meta and summary, and the per-channel results and fits."""
+    rate_hz = float(m.get("sample_rate_hz") or 1.0 / np.median(np.diff(imu.time_s)))
     channels = list(GYRO_COLUMNS + ACCEL_COLUMNS)
     results = allan_deviations(imu[channels], rate_hz, taus="octave", channels=channels, ci_level=CI_LEVEL)
     fits = fit_all(results)
     allan = pd.concat([r.to_frame() for r in results.values()], ignore_index=True).assign(ci_level=CI_LEVEL)
     noise = noise_table(fits)
-    plots = {
-        "allan_gyro": plot_allan({c: results[c] for c in GYRO_COLUMNS}, {c: fits[c] for c in GYRO_COLUMNS}, title=f"{key}: gyro"),
-        "allan_accel": plot_allan({c: results[c] for c in ACCEL_COLUMNS}, {c: fits[c] for c in ACCEL_COLUMNS}, title=f"{key}: accel"),
-    }
     inside = {c: _model_inside_ci(results[c], fits[c]) for c in channels}
     summary = {}
     for _, r in noise[(noise.method == "fit") & noise.parameter.isin(["N", "B"])].iterrows():
         summary[f"{r.channel}_{r.parameter}_{r.unit_lab}"] = float(r.value_lab)
-    m = inputs.meta("ingested_run")
     dur = len(imu) / rate_hz
     units = {c: ("rad/s" if c in GYRO_COLUMNS else "m/s^2") for c in channels}
     static_terms = pd.DataFrame([static_terms_row(m.get("run_id", key), int(m.get("power_cycle_index", 0) or 0), c,
                                                   float(imu[c].mean()), dur, fits[c], units[c]) for c in channels],
                                 columns=STATIC_RUN_COLUMNS)
     warnings = [w for c in channels for w in fits[c].warnings]
-    return StageOutput(tables={"allan": allan, "noise": noise, "static_terms": static_terms},
-                       meta={"model_inside_ci": inside, "rate_hz": rate_hz, "warnings": warnings},
-                       summary=summary, plots=plots)
+    return ({"allan": allan, "noise": noise, "static_terms": static_terms},
+            {"model_inside_ci": inside, "rate_hz": rate_hz, "warnings": warnings}, summary, results, fits)
 
 
 def _model_inside_ci(res, fit) -> float:

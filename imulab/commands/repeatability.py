@@ -19,7 +19,7 @@ def command(paths, csv_path, runs_csv, confidence):
     Every run is ingested (validated, read-only); per channel its mean is the turn-on bias (standard error from
     the fitted noise model at the record length) and its Allan fit gives N and B. The table gives the standard
     deviation over runs (seed 000 eq. 23) with a chi-square interval and the value corrected for the per-run
-    estimation noise. At least two runs are needed.
+    estimation noise with its interval (noise_corrected_ci_low/high). At least two runs are needed.
     """
     import pandas as pd
 
@@ -54,7 +54,8 @@ def command(paths, csv_path, runs_csv, confidence):
     table = static_repeatability(runs, confidence=confidence)
     with pd.option_context("display.width", 200, "display.max_columns", 20):
         click.echo(table[["channel", "quantity", "n_runs", "mean", "value", "ci_low", "ci_high",
-                          "value_noise_corrected", "unit"]].to_string(index=False))
+                          "value_noise_corrected", "noise_corrected_ci_low", "noise_corrected_ci_high",
+                          "unit"]].to_string(index=False))
     for w in sorted(set(w for s in runs["noise_warnings"] if s for w in s.split(" | "))):
         click.echo(f"WARNING {w}", err=True)
     if csv_path:

@@ -1,0 +1,405 @@
+"""Monte Carlo coverage of every noise interval imulab prints, on the pipeline's own code path (issue 15, noise part).
+
+Each trial draws a device of one grade (``example_device``; grades cycled) and simulates static runs
+(``static_long``, raw counts through ``ingest_frames``): one of ``--duration`` seconds and ``--cycles``
+power-cycled runs of a sixth of it. Every run goes through the ``allan_deviation`` stage's own computation
+(``assets_lib.stages.noise.allan_tables``: octave OADEV, the IEEE 952 fit with ``tau_min_s='auto'``, the
+``static_terms`` rows) and the equal-length power-cycled runs through the ``repeatability`` stage's
+``static_repeatability`` (the long run is left out there: a rate ramp offsets the mean of a run of another length by
+R (T1 - T2) / 2, a deterministic difference the repeatability's noise model does not describe).
+Noise plans (cycled per grade):
+
+- ``device``: the grade's own noise (N, B, K; Q on the navigation gyro);
+- ``extra_terms``: plus the digital twin's ``noise_model`` effect with quantization Q, rate ramp R (gyro and
+  accelerometer) and accelerometer rate random walk K, each placed at a random crossing time with the device's own
+  Allan variance so that it ranges from invisible to dominant;
+- ``markov``: plus a first-order Gauss-Markov term (``noise_model``'s ``gm_sigma``/``gm_tau``); the runs are
+  fitted as ``imulab allan --markov`` fits them (``fit_noise(..., markov=True)``) and those terms are scored
+  (families ``*:markov_fit``, long run); the stage's own fit (no Markov term) and the repeatability built on its
+  per-run standard errors are not scored there: its model is not the truth.
+
+Scored (rows of :func:`score_noise`):
+
+- every term the fit prints with a two-sided 95 % interval: coverage of the truth and z on the log scale,
+  z = ln(estimate / truth) / se_ln, se_ln = (ln hi - ln lo) / (2 x 1.96) read from the printed interval (a noise
+  term is a standard deviation: its error is multiplicative; the Satterthwaite chi-square interval is symmetric in
+  ln to first order). A two-sided interval for a term whose truth is zero is a miss (z undefined);
+- every term printed as an upper bound (family suffix ``bound``): one-sided, covered when truth <= bound (target
+  >= 0.95); no z;
+- the noise-corrected turn-on bias repeatability of the power-cycled runs with its MLS interval
+  (``assets_lib.calibration.repeatability``): coverage, and z as the pivot of the interval,
+  z = Phi^-1(F_chi2(nu_1 s^2 / (sigma^2 + mean se^2); nu_1)) (standard normal when the model holds).
+
+Truths: the simulator's Allan parameters, with the count quantization's white part added to N
+(N^2 + lsb^2 / (12 fs): rounding to counts is white rate noise) and the ``noise_model`` terms added in variance.
+B is IEEE 952's: flicker rate noise with two-sided PSD B^2 / (2 pi f), Allan floor sqrt(2 ln2 / pi) B = 0.664 B,
+the same definition in ``assets_lib.sim.noise.flicker_noise`` and in the fit's basis. Markov: the fit's
+markov_q = sqrt(theta_M) / T_c with theta_M = (q_c T_c)^2 = 2 sigma^2 T_c, i.e. markov_q = sigma sqrt(2 / T_c)
+(``noise_model``'s stationary sigma and T_c). Turn-on bias repeatability: the spread of the noise-free static
+output over power cycles, sqrt(sb^2 + (ss x)^2) (bias and scale-factor turn-on spreads of
+``DeviceTruth.for_power_cycle``; x the axis' input: earth rate or gravity).
+
+``markov_tc`` is scored with its profile-likelihood interval (the T_c grid points whose GLS chi2 lies within
+chi2_1(0.95) of the minimum). Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
+printed as a point; no benchmark plan injects a sinusoid),
+the slope reads (method 'slope': one-point chi-square intervals of the curve, known to be biased when terms
+overlap; benchmarks/mc_noise_id.py measures their bias), N and B repeatability (relative spread of estimates whose
+truth is zero).
+
+Hook for benchmarks/mc_calibration_coverage.py: ``score_noise(noise_trial(seed, k))`` returns the rows; rows carry
+family, grade, plan, truth, estimate, lo, hi, z, covered, trial.
+
+    python benchmarks/coverage_noise.py --seed S --trials N --workers 2 [--duration 1200] [--cycles 5]
+Writes benchmarks/results/noise_coverage.{json,md} (or --out).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+GRADES = ("navigation", "tactical", "consumer")
+PLANS = ("device", "extra_terms", "markov")
+TERMS = ("Q", "N", "B", "K", "R")
+Z95 = 1.959963984540054
+TARGET_COVERAGE = (0.93, 0.97)
+TARGET_BOUND = 0.95
+TARGET_MEAN_Z = 0.1
+TARGET_SD_Z = (0.9, 1.1)
+
+
+def _extra_effect(device_noise: dict, duration_s: float, rng: np.random.Generator, plan: str):
+    """The ``noise_model`` effect of a plan with its truth (per sensor: dict of extra terms, SI), or None.
+
+    Each extra term is placed at a crossing time tau_c with the device's own Allan variance (the term's AVAR equals
+    the device's at tau_c), tau_c log-uniform over a range where the term goes from invisible to dominant."""
+    from assets_lib.sim.effects.stochastic import NoiseModel
+
+    if plan == "device":
+        return None, {}
+    kw, extra = {}, {}
+    short = duration_s / 6.0
+    for sensor, names in (("gyro", ("gyro_q_rad", "gyro_k_radps_per_rts", "gyro_r_radps2")),
+                          ("accel", ("accel_q_mps", "accel_k_mps2_per_rts", "accel_r_mps3"))):
+        p = device_noise[sensor]
+        ex = {}
+        if plan == "extra_terms":
+            tq = 10 ** rng.uniform(np.log10(0.005), np.log10(0.1))
+            ex["Q"] = tq * math.sqrt(float(p.avar(tq)) / 3.0)  # 3 Q^2 / tau^2
+            tr = 10 ** rng.uniform(np.log10(short / 16), np.log10(duration_s / 8))
+            ex["R"] = math.sqrt(2.0 * float(p.avar(tr))) / tr  # R^2 tau^2 / 2
+            kw[names[0]], kw[names[2]] = ex["Q"], ex["R"]
+            if sensor == "accel":
+                tk = 10 ** rng.uniform(np.log10(short / 16), np.log10(duration_s / 8))
+                ex["K"] = math.sqrt(3.0 * float(p.avar(tk)) / tk)  # K^2 tau / 3
+                kw[names[1]] = ex["K"]
+        else:  # markov
+            tc = 10 ** rng.uniform(np.log10(1.0), np.log10(duration_s / 20))
+            ratio = 10 ** rng.uniform(0.0, 1.5)  # theta_M = 2 sigma^2 T_c = ratio x N^2
+            sig = p.n * math.sqrt(ratio / (2.0 * tc))
+            kw[f"{sensor}_gm_sigma_{'radps' if sensor == 'gyro' else 'mps2'}"] = sig
+            kw[f"{sensor}_gm_tau_s"] = tc
+            ex["markov_q"] = sig * math.sqrt(2.0 / tc)
+            ex["markov_tc"] = tc
+        extra[sensor] = ex
+    return NoiseModel(**kw), extra
+
+
+def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, grade: str | None = None,
+                plan: str | None = None) -> dict:
+    """One device, ``cycles`` power-cycled static runs through the allan_deviation and repeatability stages'
+    computations; returns the trial outputs :func:`score_noise` scores (tables and truths)."""
+    from assets_lib.calibration.repeatability import static_repeatability
+    from assets_lib.noise.identification import fit_all, noise_table
+    from assets_lib.sim.effects import sensor_chain
+    from assets_lib.sim.kinematics import body_inputs
+    from assets_lib.sim.plans import build_plan
+    from assets_lib.sim.simulator import DEFAULT_EFFECTS, SiteSpec, example_device, simulate_run
+    from assets_lib.stages.noise import allan_tables
+    from raw_schemas.readers import ingest_frames
+    from raw_schemas.units import si_factor
+
+    grade = grade or GRADES[k % len(GRADES)]
+    plan = plan or PLANS[(k // len(GRADES)) % len(PLANS)]
+    dev = example_device(f"NC{seed}-{k:05d}", grade, seed=seed)
+    rng = np.random.default_rng([seed, k, 952])
+    effect, extra = _extra_effect({"gyro": dev.gyro.noise[0], "accel": dev.accel.noise[0]}, duration_s, rng, plan)
+    chain = DEFAULT_EFFECTS if effect is None else sensor_chain([effect])
+    fs = dev.sample_rate_hz
+    site = SiteSpec()
+    x = body_inputs(build_plan("static_long", static_duration_s=10.0), np.array([5.0]), site.latitude_deg, 9.79)
+    inputs = {"gyro": x.omega_b_radps[0], "accel": x.f_b_mps2[0]}
+    truth, runs, static = {}, [], []
+    for sensor, tri in (("gyro", dev.gyro), ("accel", dev.accel)):
+        lsb = tri.lsb * si_factor(sensor, tri.lsb_unit)
+        sb = dev.bias_repeatability[0 if sensor == "gyro" else 1]
+        ss = dev.scale_repeatability[0 if sensor == "gyro" else 1]
+        for i, a in enumerate("xyz"):
+            p = tri.noise[i]
+            ex = extra.get(sensor, {})
+            t = {"Q": math.hypot(p.q, ex.get("Q", 0.0)), "N": math.sqrt(p.n**2 + lsb**2 / (12.0 * fs)), "B": p.b,
+                 "K": math.hypot(p.k, ex.get("K", 0.0)), "R": math.hypot(p.r, ex.get("R", 0.0))}
+            if "markov_q" in ex:
+                t["markov_q"], t["markov_tc"] = ex["markov_q"], ex["markov_tc"]
+            t["bias_repeatability"] = math.hypot(sb, ss * inputs[sensor][i])
+            truth[f"{sensor}_{a}_{'radps' if sensor == 'gyro' else 'mps2'}"] = t
+    for c in range(cycles + 1):
+        dur = duration_s if c == 0 else duration_s / 6.0
+        tr = dev.for_power_cycle(c, seed)
+        sim = simulate_run(tr, "static_long", f"pc{c:02d}-static", power_cycle_index=c, seed=seed * 1000 + k,
+                           table_log=False, effects=chain, plan_kwargs={"static_duration_s": dur})
+        ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
+        meta = {"sample_rate_hz": ing.manifest.sample_rate_hz, "run_id": ing.manifest.run_id,
+                "power_cycle_index": ing.manifest.power_cycle_index}
+        tables, _, _, results, fits = allan_tables(f"{dev.device_id}__{ing.manifest.run_id}", ing.imu, meta)
+        run = {"run_id": ing.manifest.run_id, "duration_s": dur, "noise": tables["noise"]}
+        if plan == "markov" and c == 0:  # imulab allan --markov (octave taus, as its default) on the long run
+            run["noise_markov"] = noise_table(fit_all(results, markov=True))
+        runs.append(run)
+        if c > 0:  # the equal-length power-cycled runs (a rate ramp offsets the mean of runs of other lengths)
+            static.append(tables["static_terms"])
+    rep = static_repeatability(pd.concat(static, ignore_index=True))
+    return {"seed": seed, "trial": k, "grade": grade, "plan": plan, "truth": truth, "runs": runs,
+            "static_terms": pd.concat(static, ignore_index=True), "static_repeatability": rep}
+
+
+def _row(o: dict, family: str, channel: str, run: str, truth: float, est: float, lo: float, hi: float, z: float,
+         covered: bool, kind: str) -> dict:
+    return {"seed": o["seed"], "trial": o["trial"], "grade": o["grade"], "plan": o["plan"], "run": run,
+            "family": family, "channel": channel, "kind": kind, "truth": truth, "estimate": est, "lo": lo, "hi": hi,
+            "z": z, "covered": bool(covered)}
+
+
+def _term_rows(o: dict, table: pd.DataFrame, run: str, tag: str, terms) -> list[dict]:
+    rows = []
+    fit = table[table["method"] == "fit"]
+    for r in fit.itertuples():
+        if r.parameter not in terms:
+            continue
+        t = o["truth"][r.channel].get(r.parameter)
+        if t is None:
+            continue
+        sensor = r.channel.split("_")[0]
+        fam = f"{sensor}:{r.parameter}{tag}"
+        if r.is_upper_bound:
+            rows.append(_row(o, fam + ":bound", r.channel, run, t, np.nan, 0.0, r.ci_hi, np.nan, t <= r.ci_hi,
+                             "upper_bound"))
+            continue
+        z = np.nan
+        if t > 0 and r.ci_lo > 0 and r.ci_hi > r.ci_lo:
+            z = math.log(r.value / t) / ((math.log(r.ci_hi) - math.log(r.ci_lo)) / (2 * Z95))
+        rows.append(_row(o, fam, r.channel, run, t, r.value, r.ci_lo, r.ci_hi, z, r.ci_lo <= t <= r.ci_hi,
+                         "two_sided"))
+    return rows
+
+
+def score_noise(trial_outputs: dict) -> list[dict]:
+    """Rows (family, grade, plan, truth, estimate, lo, hi, z, covered, ...) for every scored interval of one
+    trial's outputs (:func:`noise_trial`); see the module docstring for the definitions."""
+    o = trial_outputs
+    rows = []
+    for i, run in enumerate(o["runs"]):
+        label = "long" if i == 0 else "short"
+        if "noise_markov" in run:
+            rows += _term_rows(o, run["noise_markov"], label, ":markov_fit", TERMS + ("markov_q", "markov_tc"))
+        elif o["plan"] != "markov":  # the stage's fit has no Markov term: its model is not the truth there
+            rows += _term_rows(o, run["noise"], label, "", TERMS)
+    if o["plan"] == "markov":  # the stage's per-run bias standard errors come from a model without the GM term
+        return rows
+    rep = o["static_repeatability"]
+    st = o["static_terms"]
+    for r in rep[rep["quantity"] == "bias_repeatability"].itertuples():
+        t = o["truth"][r.channel]["bias_repeatability"]
+        lo, hi = r.noise_corrected_ci_low, r.noise_corrected_ci_high
+        if not (np.isfinite(lo) and np.isfinite(hi)):
+            continue
+        g = st[st["channel"] == r.channel]  # the runs the repeatability used
+        v, se2 = g["bias"].to_numpy(float), g["bias_stderr"].to_numpy(float) ** 2
+        q = len(v)
+        s2 = float(np.var(v, ddof=1))
+        vi = max(s2 - se2.mean(), 0.0) + se2
+        var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / (q - 1) ** 2
+        nu1 = 2.0 * np.mean(vi) ** 2 / var_s2
+        p = stats.chi2.cdf(nu1 * s2 / (t**2 + se2.mean()), nu1)
+        z = float(stats.norm.ppf(np.clip(p, 1e-12, 1 - 1e-12)))
+        rows.append(_row(o, f"{r.channel.split('_')[0]}:bias_repeatability_noise_corrected", r.channel, "all", t,
+                         r.value_noise_corrected, lo, hi, z, lo <= t <= hi, "two_sided"))
+    return rows
+
+
+def _trial_rows(args) -> list[dict]:
+    seed, k, duration_s, cycles = args
+    return score_noise(noise_trial(seed, k, duration_s, cycles))
+
+
+def run(seed: int, trials: int, workers: int = 1, duration_s: float = 1200.0, cycles: int = 5,
+        budget_s: float | None = None) -> pd.DataFrame:
+    """Rows of trials 0..trials-1; with ``budget_s``, trials not started within the budget are left out (every
+    trial that is scored ran to its end; the number done is the trial count reported)."""
+    jobs = [(seed, k, duration_s, cycles) for k in range(trials)]
+    recs: list[dict] = []
+    t0 = time.time()
+    if workers > 1:
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        with ProcessPoolExecutor(workers) as ex:
+            pending, it = set(), iter(jobs)
+            while True:
+                while len(pending) < 2 * workers and (budget_s is None or time.time() - t0 < budget_s):
+                    j = next(it, None)
+                    if j is None:
+                        break
+                    pending.add(ex.submit(_trial_rows, j))
+                if not pending:
+                    break
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    recs.extend(f.result())
+    else:
+        for j in jobs:
+            if budget_s is not None and time.time() - t0 >= budget_s:
+                break
+            recs.extend(_trial_rows(j))
+    return pd.DataFrame(recs)
+
+
+def clustered(d: pd.DataFrame) -> dict:
+    """Coverage, mean z and sd z with trial-clustered standard errors (estimates of one trial share a device)."""
+    g = d.groupby("trial")
+    n_t = g.size().to_numpy(float)
+    N, T = n_t.sum(), len(n_t)
+    corr = T / (T - 1) if T > 1 else np.nan
+    c_t = g["covered"].sum().to_numpy(float)
+    cov = c_t.sum() / N
+    out = {"n": int(N), "trials": T, "coverage": cov, "coverage_se": float(np.sqrt(corr * np.sum((c_t - cov * n_t) ** 2)) / N)}
+    dz = d[np.isfinite(d["z"])]
+    if len(dz) > 1:
+        gz = dz.groupby("trial")
+        nz = gz.size().to_numpy(float)
+        s1 = gz["z"].sum().to_numpy(float)
+        s2 = gz["z"].apply(lambda v: float(np.sum(v**2))).to_numpy(float)
+        Nz = nz.sum()
+        mz, m2 = s1.sum() / Nz, s2.sum() / Nz
+        sd = float(np.sqrt(max(m2 - mz**2, 0.0) * Nz / max(Nz - 1, 1)))
+        cz = len(nz) / (len(nz) - 1) if len(nz) > 1 else np.nan
+        out.update(mean_z=mz, mean_z_se=float(np.sqrt(cz * np.sum((s1 - mz * nz) ** 2)) / Nz), sd_z=sd,
+                   sd_z_se=float(np.sqrt(cz * np.sum((s2 - m2 * nz) ** 2)) / Nz / (2 * sd)) if sd > 0 else np.nan)
+    else:
+        out.update(mean_z=np.nan, mean_z_se=np.nan, sd_z=np.nan, sd_z_se=np.nan)
+    return out
+
+
+def meets(r: dict) -> bool:
+    if str(r["family"]).endswith(":bound"):
+        return bool(r["coverage"] >= TARGET_BOUND)
+    ok = TARGET_COVERAGE[0] <= r["coverage"] <= TARGET_COVERAGE[1]
+    if np.isfinite(r["mean_z"]):
+        ok &= abs(r["mean_z"]) < TARGET_MEAN_Z and TARGET_SD_Z[0] <= r["sd_z"] <= TARGET_SD_Z[1]
+    return bool(ok)
+
+
+def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    tabs = {}
+    for name, keys in (("family", ["family"]), ("family_grade", ["family", "grade"]), ("family_plan", ["family", "plan"]),
+                       ("family_run", ["family", "run"])):
+        rows = [dict(zip(keys, kk if isinstance(kk, tuple) else (kk,)), **clustered(d)) for kk, d in df.groupby(keys)]
+        t = pd.DataFrame(rows)
+        t["meets"] = [meets(r) for r in t.to_dict("records")]
+        tabs[name] = t
+    # every printed interval of a term, two-sided or [0, bound]: how often what is printed contains the truth
+    term = df.assign(family=df["family"].str.replace(r":bound$", "", regex=True))
+    rows = []
+    for f, d in term.groupby("family"):
+        c = clustered(d.assign(z=np.nan))
+        rows.append({"family": f, "n": c["n"], "bound_share": float((d["kind"] == "upper_bound").mean()),
+                     "coverage": c["coverage"], "coverage_se": c["coverage_se"]})
+    tabs["term_all_reports"] = pd.DataFrame(rows)
+    return tabs
+
+
+def _fmt(v, se=None, f="{:.3f}"):
+    if v is None or not np.isfinite(v):
+        return "-"
+    return f.format(v) + (f" ± {se:.3f}" if se is not None and np.isfinite(se) else "")
+
+
+def markdown(tabs: dict, meta: dict) -> str:
+    fam = tabs["family"]
+    two = fam[~fam["family"].str.endswith(":bound")]
+    lines = [
+        "# Noise-term and repeatability coverage (Monte Carlo, pipeline code path)", "",
+        f"{meta['trials']} trials (seed {meta['seed']}; per trial one static run of {meta['duration_s']:g} s and "
+        f"{meta['cycles']} power-cycled static runs of {meta['duration_s'] / 6:g} s; 100 Hz), {int(fam['n'].sum())} scored "
+        f"intervals, {meta['seconds']} s. Generated by `{meta['command']}`.", "",
+        f"Targets: two-sided 95 % intervals {TARGET_COVERAGE[0]:.2f}-{TARGET_COVERAGE[1]:.2f} with |mean z| < "
+        f"{TARGET_MEAN_Z} and z sd {TARGET_SD_Z[0]}-{TARGET_SD_Z[1]} (z of a noise term on the log scale, "
+        f"ln(estimate / truth) / se_ln; of the repeatability the interval's chi-square pivot); upper bounds "
+        f"(`:bound`) one-sided, truth <= bound in >= {TARGET_BOUND:.2f}. ± are trial-clustered standard errors. "
+        f"Two-sided families meeting every target: **{int(two['meets'].sum())} of {len(two)}**; bound families: "
+        f"{int(fam['meets'].sum() - two['meets'].sum())} of {len(fam) - len(two)}; family x grade cells: "
+        f"{int(tabs['family_grade']['meets'].sum())} of {len(tabs['family_grade'])}.", "",
+        "| family | n | coverage | mean z | sd z | meets |", "|---|---:|---:|---:|---:|---|"]
+    for r in fam.itertuples():
+        lines.append(f"| {r.family} | {r.n} | {_fmt(r.coverage, r.coverage_se)} | "
+                     f"{_fmt(r.mean_z, r.mean_z_se, '{:+.3f}')} | {_fmt(r.sd_z, r.sd_z_se)} | {'yes' if r.meets else 'no'} |")
+    lines += ["", "Every printed interval of a term (two-sided, or [0, bound]): share of bounds and coverage of the truth:",
+              "", "| term | n | bound share | coverage |", "|---|---:|---:|---:|"]
+    for r in tabs["term_all_reports"].itertuples():
+        lines.append(f"| {r.family} | {r.n} | {r.bound_share:.3f} | {_fmt(r.coverage, r.coverage_se)} |")
+    for name, col in (("family_grade", "grade"), ("family_plan", "plan"), ("family_run", "run")):
+        lines += ["", f"Per family and {col}:", "", f"| family | {col} | n | coverage | mean z | sd z | meets |",
+                  "|---|---|---:|---:|---:|---:|---|"]
+        for r in tabs[name].to_dict("records"):
+            lines.append(f"| {r['family']} | {r[col]} | {r['n']} | {_fmt(r['coverage'], r['coverage_se'])} | "
+                         f"{_fmt(r['mean_z'], r['mean_z_se'], '{:+.3f}')} | {_fmt(r['sd_z'], r['sd_z_se'])} | "
+                         f"{'yes' if r['meets'] else 'no'} |")
+    lines += ["", "Definitions, truths and what is not scored: the docstring of benchmarks/coverage_noise.py."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=0, help="base seed; use new seeds for acceptance")
+    ap.add_argument("--trials", type=int, default=60)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--duration", type=float, default=1200.0, help="length of the first static run [s]")
+    ap.add_argument("--cycles", type=int, default=5, help="equal-length power-cycled static runs per trial")
+    ap.add_argument("--budget-s", type=float, default=None, help="start no trial after this many seconds")
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "noise_coverage")
+    ap.add_argument("--records", action="store_true", help="also write every row to <out>.records.csv")
+    args = ap.parse_args(argv)
+    t0 = time.time()
+    df = run(args.seed, args.trials, args.workers, args.duration, args.cycles, args.budget_s)
+    done = int(df["trial"].nunique())
+    tabs = summarize(df)
+    cmd = (f"python benchmarks/coverage_noise.py --seed {args.seed} --trials {args.trials} --workers {args.workers} "
+           f"--duration {args.duration:g} --cycles {args.cycles}")
+    if args.budget_s is not None:
+        cmd += f" --budget-s {args.budget_s:g}"
+    meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "duration_s": args.duration, "cycles": args.cycles,
+            "seconds": round(time.time() - t0, 1), "command": cmd}
+    text = markdown(tabs, meta)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".md").write_text(text)
+    if args.records:
+        df.to_csv(args.out.with_suffix(".records.csv"), index=False)
+    args.out.with_suffix(".json").write_text(json.dumps(
+        {"meta": meta, **{k: t.to_dict(orient="records") for k, t in tabs.items()}}, indent=1, default=float) + "\n")
+    print(text)
+    return 0 if bool(tabs["family"]["meets"].all()) else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
