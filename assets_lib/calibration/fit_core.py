@@ -61,6 +61,9 @@ import numpy as np
 from scipy import stats
 
 DEFAULT_REL_TOL = 1e-3
+#: acceptable reduced chi-square of a fit's standardized residuals (noise model consistency): one band for the
+#: calibration stage's gate and check and for a record's status (assets_lib.records.validity)
+CHI2_BAND = (0.2, 5.0)
 DEFAULT_ALPHA = 0.01  # family-wise level of the Bonferroni outlier test (false exclusion in ~1 % of fits)
 DEFAULT_SEM_PRIOR_DOF = 4.0  # degrees of freedom given to the plateau sems' absolute level (~ +/-35 % on sigma)
 

@@ -18,10 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from assets_lib.calibration.fit_core import CHI2_BAND
 from assets_lib.calibration.grades import implausible
 
-#: acceptable reduced chi-square of plateau residuals (noise model consistency)
-CHI2_BAND = (0.2, 5.0)
 #: the fitted noise model must lie inside the per-tau interval at this share of the fitted taus
 MODEL_INSIDE_CI_MIN = 0.8
 

@@ -17,7 +17,7 @@ from assets_lib.calibration.multiposition import (
 )
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
-from assets_lib.records.validity import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
+from assets_lib.calibration.fit_core import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
 from assets_lib.stages.spec import Gate, StageOutput, stage
 from raw_schemas.manifest import Manifest
 
