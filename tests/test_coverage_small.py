@@ -27,7 +27,8 @@ FAMILIES = {
     "gyro:rate:sf_nonlinearity_below_floor", "gyro:static:bias", "gyro:static:g_sensitivity",
     "gyro:difference:scale_factor", "gyro:difference:misalignment", "gyro:means:scale_factor",
     "gyro:means:scale_factor_pos", "gyro:means:scale_factor_neg", "gyro:means:asymmetry",
-    "gyro:means:nonlinearity_below_floor",
+    "gyro:means:nonlinearity_below_floor", "accel:tablefree:bias", "accel:tablefree:scale_factor",
+    "accel:tablefree:misalignment", "gyro:tablefree:scale_factor", "gyro:tablefree:misalignment",
 }
 
 
@@ -87,3 +88,25 @@ def test_small_benchmark_scores_every_family(tmp_path):
     r = pd.DataFrame(mc.trial((915, 3, False)))
     assert set(r["rate_plan"]) == {"seed003_rate_sequence"} and set(r["pos_plan"]) == {"six_position"}
     assert {"accel:accel:bias", "accel:accel:scale_factor", "gyro:rate:sf_asymmetry"} <= set(mc.family(r))
+
+
+@pytest.mark.slow
+def test_noise_hook_rows_join_the_trial(monkeypatch):
+    """The noise scoring (benchmarks/coverage_noise.py, score_noise(trial_outputs) -> rows) is called once per
+    trial with the trial's device, runs and fits, and its rows carry the trial's labels."""
+    import types
+
+    seen = {}
+
+    def score_noise(outputs):
+        seen.update(outputs)
+        b = outputs["device"].gyro.noise[0].n
+        return [dict(sensor="gyro", axis="x", coefficient="arw", fit="noise", value=b, stderr=b / 10, truth=b, z=0.0,
+                     covered=True)]
+
+    monkeypatch.setitem(sys.modules, "coverage_noise", types.SimpleNamespace(score_noise=score_noise))
+    r = pd.DataFrame(mc.trial((916, 0, True)))
+    assert set(seen) >= {"base", "device", "runs", "fits", "passed"}
+    assert set(seen["runs"]) == {"rate", "position"} and "plateaus" in seen["runs"]["rate"]
+    row = r[r["fit"] == "noise"]
+    assert len(row) == 1 and row["grade"].iloc[0] == mc.GRADES[0] and row["trial"].iloc[0] == 0
