@@ -27,8 +27,8 @@ stderr. Also scored, from the same result objects:
   derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth);
 - the table-free fits (``fit 'tablefree'``; benchmarks/mc_tablefree_coverage.py's trial on a trial-specific seed:
   a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
-  accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded (the
-  grade label is the trial's) and has no plan;
+  accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
+  (grade 'ungraded') and has no plan;
 - noise terms through one hook: ``score_noise(trial_outputs) -> list of rows`` of benchmarks/coverage_noise.py
   (see :func:`_noise_hook` for the contract); skipped with a message while that module does not exist.
 
@@ -309,7 +309,7 @@ def tablefree_rows(base: dict, seed: int, k: int) -> list[dict]:
     """The table-free fits (benchmarks/mc_tablefree_coverage.py's trial: a hand-placed session, static-pose
     detection, the Tedaldi accelerometer fit and the gyro integration fit) on a trial-specific seed; fit
     'tablefree', coefficients renamed to the families used here (t_ij -> misalignment_ij, k_a -> scale_factor_a,
-    b_a -> bias_a). The hand-session device is not graded: the grade label is the trial's, for bookkeeping."""
+    b_a -> bias_a). The hand-session device is not graded: grade 'ungraded'."""
     import mc_tablefree_coverage as tf
 
     out = []
@@ -320,8 +320,8 @@ def tablefree_rows(base: dict, seed: int, k: int) -> list[dict]:
         else:
             kind, axis = c.split("_")
             coef = {"k": "scale_factor", "b": "bias"}[kind] + f"_{axis}"
-        out.append(dict(base, sensor=sensor, axis=axis, coefficient=coef, fit="tablefree", value=v, stderr=s,
-                        truth=t, z=(v - t) / s, covered=bool(hit)))
+        out.append(dict(base, grade="ungraded", sensor=sensor, axis=axis, coefficient=coef, fit="tablefree", value=v,
+                        stderr=s, truth=t, z=(v - t) / s, covered=bool(hit)))
     return out
 
 
