@@ -8,9 +8,16 @@ method. Misalignment is observable only when the plateaus excite the other axes 
 body axes, [SEED000] eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
 identifiability rule, the exclusion tests and the covariance policy.
 
-Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted line over the full-scale output),
-asymmetry (K+ vs K-, [IEEE952] / [SEED003]) with uncertainties, automatic exclusion of saturated and wild
-plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a cross-check.
+Scale-factor asymmetry ([IEEE952]: K+ vs K-) is part of the model: a hinge column (dK/2)|omega_i| next to
+K_i omega_i, so K_i is the mean of K+ and K-, b_i the output at zero rate, and an asymmetric sensor's |omega|
+signature no longer goes to the bias and the residual scatter (the coverage benchmark: consumer K z sd 1.9 with
+asymmetry injected and a straight-line model). The column is optional: a schedule that cannot separate it from
+the bias reports the asymmetry unobservable and fits the straight line.
+
+Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted straight line over the full-scale
+output; the same fit without the hinge), K+, K- and asymmetry with uncertainties, automatic exclusion of
+saturated and wild plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a
+cross-check.
 
 g-sensitivity enters as centred nuisance columns: the bias shifts between the rate tests' orientations (G f)
 are absorbed even when G is not separable from the bias, and the bias is then reported at the schedule's mean
