@@ -29,8 +29,9 @@ stderr. Also scored, from the same result objects:
   a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
   accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
   (grade 'ungraded') and has no plan;
-- noise terms through one hook: ``score_noise(trial_outputs) -> list of rows`` of benchmarks/coverage_noise.py
-  (see :func:`_noise_hook` for the contract); skipped with a message while that module does not exist.
+- noise terms and noise-corrected repeatability through one hook, ``score_noise(noise_trial(seed, k))`` of
+  benchmarks/coverage_noise.py (see :func:`noise_rows`), on every ``--noise-every``-th trial (its static runs are
+  long: 0 turns it off); skipped with a message while that module does not exist.
 
 Truths: gyro rate-fit bias where g-sensitivity is not separable is b + G f_bar (the record says so in its note);
 the static gyro bias is b. Scale-factor asymmetry eps (the digital twin's ``ScaleFactorAsymmetry``, drawn per
@@ -56,9 +57,7 @@ Not scored here (stated, so no printed interval passes unchecked):
   (the fit warns: chi-square); scored with the term (below);
 - nonlinearity away from zero (the twin's ``ScaleFactorNonlinearity``): not yet; the floor's coverage is scored
   on linear sensors only;
-- noise-corrected repeatability and the noise terms (Q, R, N, B, K, the Markov term, accelerometer noise): the
-  noise helper's benchmarks/coverage_noise.py through the hook above; gyro N, B, K also in
-  benchmarks/mc_noise_id.py.
+- the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py.
 
     python benchmarks/mc_calibration_coverage.py --seed 2026 --trials 2000 --workers 2 --records
 """
@@ -184,8 +183,9 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
     return recs
 
 
-def trial(args: tuple[int, int, bool]) -> list[dict]:
-    """One device, one rate run and one position run, fitted as the stages fit them."""
+def trial(args: tuple) -> list[dict]:
+    """One device, one rate run and one position run, fitted as the stages fit them; args (seed, k, quick[,
+    noise_every]): the noise scoring runs on trials with k % noise_every == 0 (0: never)."""
     from assets_lib.calibration.multiposition import (
         fit_accel_multiposition,
         fit_gyro_static,
@@ -198,7 +198,7 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
     from raw_schemas.readers import ingest_frames
 
-    seed, k, quick = args
+    seed, k, quick, noise_every = (*args, 1) if len(args) == 3 else args
     rate_names, pos_names = QUICK if quick else (tuple(RATE_PLANS), tuple(POS_PLANS))
     grade = GRADES[k % len(GRADES)]
     rate_plan = rate_names[(k // len(GRADES)) % len(rate_names)]
@@ -209,15 +209,13 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     # rate plan meets both cases
     if (k // (len(GRADES) * len(RATE_PLANS))) % 2 == 1:
         eps = ASYMMETRY_SD[grade] * np.random.default_rng([seed, k, 15]).standard_normal(3)
-    plates, runs = {}, {}
+    plates = {}
     for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS))):
         fx = sensor_chain([ScaleFactorAsymmetry(gyro=tuple(eps))]) if (m == 0 and eps is not None) else DEFAULT_EFFECTS
         sim = simulate_run(dev, _plan(name, scales[name]), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m,
                            effects=fx)
         ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
         plates[m] = segment_run(ing.manifest, ing.imu, ing.table).plateaus
-        runs[("rate", "position")[m]] = {"plan": name, "effects": fx, "sim": sim, "ingested": ing,
-                                         "plateaus": plates[m]}
     # the blocking gate of the plateaus stage: a run with too few usable plateaus gets no fit and no record
     passed = [float((~plates[m]["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION for m in (0, 1)]
     rf = fit_gyro_rate(plates[0]) if passed[0] else None  # stage gyro_rate_fit
@@ -235,29 +233,39 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     if passed[1]:
         rows += tumble_rows(base, plates[1], dev)
     rows += tablefree_rows(base, seed, k)
-    noise = _noise_hook()
-    if noise is not None:
-        outputs = {"base": dict(base), "device": dev, "runs": runs, "fits": {"rate": rf, "accel": af, "static": gs},
-                   "passed": dict(zip(("rate", "position"), passed))}
-        rows += [{**base, **r} for r in noise(outputs)]
+    if noise_every > 0 and k % noise_every == 0:
+        rows += noise_rows(base, seed, k)
     return rows
 
 
-def _noise_hook():
-    """``score_noise(trial_outputs) -> list of rows`` of benchmarks/coverage_noise.py (noise terms Q, R, N, B, K,
-    the Markov term, accelerometer noise, noise-corrected repeatability; owned by the noise work of issue 15), or
-    None when that module does not exist yet. ``trial_outputs``: {"base": the trial's labels (seed, trial, grade,
-    plans, asymmetry_injected), "device": the simulated DeviceModel (truth), "runs": {"rate"|"position": {"plan",
-    "effects", "sim" (SimResult), "ingested", "plateaus"}}, "fits": {"rate", "accel", "static"} (None where the
-    gate failed), "passed": {"rate"|"position": bool}}. Each row: sensor, axis, coefficient, fit, value, stderr,
-    truth, z, covered (the trial's labels are added)."""
+def _noise_module():
+    """benchmarks/coverage_noise.py (the noise part of issue 15), or None while it does not exist."""
     try:
-        from coverage_noise import score_noise  # benchmarks/ is on sys.path when this script runs
+        import coverage_noise  # benchmarks/ is on sys.path when this script runs
     except ModuleNotFoundError as e:
         if e.name != "coverage_noise":
             raise
         return None
-    return score_noise
+    return coverage_noise
+
+
+def noise_rows(base: dict, seed: int, k: int) -> list[dict]:
+    """The noise intervals through benchmarks/coverage_noise.py's hook, ``score_noise(noise_trial(seed, k))``:
+    a device of the trial's grade, static runs through the allan_deviation and repeatability stages' own
+    computations (noise terms Q, N, B, K, R, the Markov term, gyro and accelerometer; noise-corrected turn-on bias
+    repeatability), scored there (z on the log scale for a noise term; upper bounds: coverage only). Their rows
+    become this script's: fit 'noise', coefficient = the family after the sensor (':' -> '_', e.g. N_markov_fit,
+    K_bound), axis = channel. [] when that module is absent."""
+    mod = _noise_module()
+    if mod is None:
+        return []
+    out = []
+    for r in mod.score_noise(mod.noise_trial(seed, k, grade=base["grade"])):
+        sensor, coef = str(r["family"]).split(":", 1)
+        out.append(dict(base, sensor=sensor, axis=str(r.get("channel", "")), coefficient=coef.replace(":", "_"),
+                        fit="noise", value=float(r.get("estimate", np.nan)), stderr=np.nan, truth=float(r["truth"]),
+                        z=float(r["z"]), covered=bool(r["covered"]), noise_plan=r.get("plan"), noise_run=r.get("run")))
+    return out
 
 
 #: coefficients of ``imulab fit tumble --misalignment-term`` that carry an interval
@@ -411,7 +419,7 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
             plan = name.removeprefix("family_")
             if plan in ("rate_plan", "pos_plan"):
                 keep = t["family"].str.contains(":rate:|:difference:|:means:") == (plan == "rate_plan")  # tumble: pos
-                t = t[keep & ~t["family"].str.contains(":tablefree:")]  # hand sessions: no plan
+                t = t[keep & ~t["family"].str.contains(":tablefree:|:noise:")]  # hand sessions, static runs: no plan
         t["meets"] = [meets(r) for r in t.to_dict("records")]
         tabs[name] = t.reset_index(drop=True)
     gate = gate.assign(plan=np.where(gate["coefficient"].str.startswith("rate"), gate["rate_plan"], gate["pos_plan"]))
@@ -436,7 +444,8 @@ def markdown(tabs: dict, meta: dict) -> str:
         f"{meta['seconds']} s. Generated by `{meta['command']}`."
          + (f" Stopped by the time budget after {meta['trials']} of {meta['trials_requested']} requested trials."
             if meta.get("trials_requested", meta["trials"]) > meta["trials"] else "")
-         + ("" if meta.get("noise_scored") else " Noise terms not scored (benchmarks/coverage_noise.py absent).")),
+         + ("" if meta.get("noise_scored") else " Noise terms not scored (benchmarks/coverage_noise.py absent or "
+                                                "--noise-every 0).")),
         "",
         (f"Targets per family: 95 % coverage {TARGET_COVERAGE[0]:.2f}-{TARGET_COVERAGE[1]:.2f}, |mean z| < "
         f"{TARGET_MEAN_Z}, z sd {TARGET_SD_Z[0]}-{TARGET_SD_Z[1]}. ± are trial-clustered standard errors. "
@@ -472,11 +481,12 @@ def markdown(tabs: dict, meta: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(seed: int, trials: int, workers: int = 1, quick: bool = False, budget_s: float | None = None) -> pd.DataFrame:
+def run(seed: int, trials: int, workers: int = 1, quick: bool = False, budget_s: float | None = None,
+        noise_every: int = 1) -> pd.DataFrame:
     """Trials 0..trials-1; with ``budget_s`` no trial starts after that many seconds (the trials done are scored:
     a shared machine's honest partial run instead of a killed one)."""
     t0 = time.time()
-    jobs = [(seed, k, quick) for k in range(trials)]
+    jobs = [(seed, k, quick, noise_every) for k in range(trials)]
     recs: list[dict] = []
 
     def in_time():
@@ -517,18 +527,22 @@ def main(argv=None):
     ap.add_argument("--records", action="store_true", help="also write every estimate to <out>.records.csv")
     ap.add_argument("--budget-s", type=float, default=None,
                     help="start no trial after this many seconds; the trials done are scored and reported")
+    ap.add_argument("--noise-every", type=int, default=1,
+                    help="score the noise intervals (benchmarks/coverage_noise.py) on every N-th trial; 0: never")
     args = ap.parse_args(argv)
     t0 = time.time()
-    if _noise_hook() is None:
+    noise_on = args.noise_every > 0 and _noise_module() is not None
+    if _noise_module() is None:
         print("benchmarks/coverage_noise.py (score_noise) not found: noise terms not scored in this run", file=sys.stderr)
-    df = run(args.seed, args.trials, args.workers, args.plans == "quick", args.budget_s)
+    df = run(args.seed, args.trials, args.workers, args.plans == "quick", args.budget_s, args.noise_every)
     tabs = summarize(df)
     done = int(df["trial"].nunique()) if len(df) else 0
     cmd = (f"python benchmarks/mc_calibration_coverage.py --seed {args.seed} --trials {args.trials} "
            f"--workers {args.workers} --plans {args.plans}"
-           + (f" --budget-s {args.budget_s:g}" if args.budget_s is not None else ""))
+           + (f" --budget-s {args.budget_s:g}" if args.budget_s is not None else "")
+           + (f" --noise-every {args.noise_every}" if args.noise_every != 1 else ""))
     meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "plans": args.plans,
-            "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": _noise_hook() is not None}
+            "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": noise_on}
     text = markdown(tabs, meta)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(text)
