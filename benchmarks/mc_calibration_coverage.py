@@ -16,20 +16,33 @@ stderr. Also scored, from the same result objects:
 - the seed 000 full-revolution difference method (``GyroRateFit.difference``, printed in the cross-check
   table): scale factor and misalignment, normal 95 % intervals;
 - ``imulab fit rate`` (``fit_rate_means``, seed 001's plateau-means fit) on each axis' sweep tabulated as a lab
-  without raw logs would (table rate, plateau mean and sem): scale factor, K+, K-, asymmetry;
+  would (one mounting: the sweep's rate plateaus and the zero-rate plateaus in the same orientation; table rate,
+  plateau mean and sem, plateau start/end times and the run's 1/f level B for the correlated-noise model):
+  scale factor, K+, K-, asymmetry;
 - the nonlinearity statistic (max |residual| / full scale, rate fit and means fit; a statistic with a detection
   floor, not an interval): the simulated sensors are linear (trials without injected asymmetry), so the
-  fraction of fits whose statistic stays below the printed 95 % noise floor is the floor's coverage (target 95 %).
+  fraction of fits whose statistic stays below the printed 95 % noise floor is the floor's coverage (target 95 %);
+- ``imulab fit tumble --misalignment-term`` (``fit_tumble_means``, seed 001's K0-K3 model) on the accelerometer
+  axes a position plan tumbles through a full turn (the seed 001 12-position plan): K0-K3, delta_o and the
+  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth);
+- the table-free fits (``fit 'tablefree'``; benchmarks/mc_tablefree_coverage.py's trial on a trial-specific seed:
+  a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
+  accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
+  (grade 'ungraded') and has no plan;
+- noise terms and noise-corrected repeatability through one hook, ``score_noise(noise_trial(seed, k))`` of
+  benchmarks/coverage_noise.py (see :func:`noise_rows`), on every ``--noise-every``-th trial (its static runs are
+  long: 0 turns it off); skipped with a message while that module does not exist.
 
 Truths: gyro rate-fit bias where g-sensitivity is not separable is b + G f_bar (the record says so in its note);
 the static gyro bias is b. Scale-factor asymmetry eps (the digital twin's ``ScaleFactorAsymmetry``, drawn per
 axis with the grade's ``ASYMMETRY_SD``) is injected into the rate run of every other pair of plan cycles, so
-asymmetry is tested away from zero: K+- = K (1 +- eps/2), asymmetry eps; there the rate-fit bias is not scored (the straight
-line's bias absorbs (eps/2) K |w| averaged with the fit's weights). Elsewhere K+ = K- = K, asymmetry 0.
+asymmetry is tested away from zero: K+- = K (1 +- eps/2), K = mean(K+, K-), asymmetry eps; the rate model has the
+|w| term, so its bias (at zero rate) keeps its truth. Elsewhere K+ = K- = K, asymmetry 0.
 
 Schedules: the rate plan and the position plan of trial k cycle through ``RATE_PLANS`` and ``POS_PLANS`` (the quick
 plans, a 6-position subset of the 24 positions, the seeds' 8-, 12- and 24-position plans and rate sequence, their
 dwell times scaled so a trial stays short), so every grade meets every plan. ``--plans quick`` keeps the quick plans.
+``--budget-s``: no trial starts after that many seconds; the report says how many of the requested trials ran.
 
 Report: coverage, mean and standard deviation of z per coefficient family (sensor:fit:coefficient, axes and
 off-diagonal indices pooled), per family and grade, per family and plan, with **trial-clustered** standard
@@ -39,12 +52,14 @@ errors (estimates of one trial share its device and its noise). Targets (issue 1
 Not scored here (stated, so no printed interval passes unchecked):
 - rate-fit g-sensitivity: scored when observable; the rate plans here excite it too little (reported unobservable,
   its effect carried by the bias at f_bar);
-- ``imulab fit tumble`` (K0-K3 of the plateau-means tumble fit), noise-corrected repeatability (a statistic: the
-  repeatability stage prints no interval for it), the table-free fits of the real-data issue: not yet;
-- noise terms: gyro N, B, K coverage in benchmarks/mc_noise_id.py; Q, R, the Markov term and the accelerometer
-  terms not yet.
+- ``imulab fit tumble`` without ``--misalignment-term``: on a tumble through a full turn the cos theta term is
+  orthogonal to the others, so K0-K3 keep their values, but the misalignment left in the residuals widens them
+  (the fit warns: chi-square); scored with the term (below);
+- nonlinearity away from zero (the twin's ``ScaleFactorNonlinearity``): not yet; the floor's coverage is scored
+  on linear sensors only;
+- the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py.
 
-    python benchmarks/mc_calibration_coverage.py --seed 1 --trials 2000 --workers 2
+    python benchmarks/mc_calibration_coverage.py --seed 2026 --trials 2000 --workers 2 --records
 """
 
 from __future__ import annotations
@@ -62,6 +77,7 @@ import pandas as pd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 AX = "xyz"
 GRADES = ("navigation", "tactical", "consumer")
@@ -102,8 +118,7 @@ def _truth(rf, Kg, Eg, bg, G, Ka, Ea, ba, K2, Kc, eps=None):
         truth[("gyro", a, "scale_factor_pos", "rate")] = Kg[i] * (1 + e / 2)
         truth[("gyro", a, "scale_factor_neg", "rate")] = Kg[i] * (1 - e / 2)
         truth[("gyro", a, "sf_asymmetry", "rate")] = e
-        if eps is None:  # with asymmetry the straight-line bias absorbs (eps/2) K |w| averaged with the fit weights
-            truth[("gyro", a, "bias", "rate")] = tb
+        truth[("gyro", a, "bias", "rate")] = tb  # the rate model has the |w| (asymmetry) term: bias at zero rate
         truth[("gyro", a, "bias", "static")] = bg[i]
         truth[("accel", a, "scale_factor", "accel")] = Ka[i]
         truth[("accel", a, "bias", "accel")] = ba[i]
@@ -168,8 +183,9 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
     return recs
 
 
-def trial(args: tuple[int, int, bool]) -> list[dict]:
-    """One device, one rate run and one position run, fitted as the stages fit them."""
+def trial(args: tuple) -> list[dict]:
+    """One device, one rate run and one position run, fitted as the stages fit them; args (seed, k, quick[,
+    noise_every]): the noise scoring runs on trials with k % noise_every == 0 (0: never)."""
     from assets_lib.calibration.multiposition import (
         fit_accel_multiposition,
         fit_gyro_static,
@@ -182,7 +198,7 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
     from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
     from raw_schemas.readers import ingest_frames
 
-    seed, k, quick = args
+    seed, k, quick, noise_every = (*args, 1) if len(args) == 3 else args
     rate_names, pos_names = QUICK if quick else (tuple(RATE_PLANS), tuple(POS_PLANS))
     grade = GRADES[k % len(GRADES)]
     rate_plan = rate_names[(k // len(GRADES)) % len(rate_names)]
@@ -213,25 +229,138 @@ def trial(args: tuple[int, int, bool]) -> list[dict]:
             "asymmetry_injected": eps is not None}
     gate = [dict(base, sensor="gate", axis="", coefficient=f"{kind}_run_passed", fit="gate", value=np.nan,
                  stderr=np.nan, truth=np.nan, z=np.nan, covered=ok) for kind, ok in zip(("rate", "position"), passed)]
-    return gate + score(base, rf, af, gs, truth, rate_means(plates[0]) if passed[0] else None)
+    rows = gate + score(base, rf, af, gs, truth, rate_means(plates[0]) if passed[0] else None)
+    if passed[1]:
+        rows += tumble_rows(base, plates[1], dev)
+    rows += tablefree_rows(base, seed, k)
+    if noise_every > 0 and k % noise_every == 0:
+        rows += noise_rows(base, seed, k)
+    return rows
+
+
+def _noise_module():
+    """benchmarks/coverage_noise.py (the noise part of issue 15), or None while it does not exist."""
+    try:
+        import coverage_noise  # benchmarks/ is on sys.path when this script runs
+    except ModuleNotFoundError as e:
+        if e.name != "coverage_noise":
+            raise
+        return None
+    return coverage_noise
+
+
+def noise_rows(base: dict, seed: int, k: int) -> list[dict]:
+    """The noise intervals through benchmarks/coverage_noise.py's hook, ``score_noise(noise_trial(seed, k))``:
+    a device of the trial's grade, static runs through the allan_deviation and repeatability stages' own
+    computations (noise terms Q, N, B, K, R, the Markov term, gyro and accelerometer; noise-corrected turn-on bias
+    repeatability), scored there (z on the log scale for a noise term; upper bounds: coverage only). Their rows
+    become this script's: fit 'noise', coefficient = the family after the sensor (':' -> '_', e.g. N_markov_fit,
+    K_bound), axis = channel. [] when that module is absent."""
+    mod = _noise_module()
+    if mod is None:
+        return []
+    out = []
+    for r in mod.score_noise(mod.noise_trial(seed, k, grade=base["grade"])):
+        sensor, coef = str(r["family"]).split(":", 1)
+        out.append(dict(base, sensor=sensor, axis=str(r.get("channel", "")), coefficient=coef.replace(":", "_"),
+                        fit="noise", value=float(r.get("estimate", np.nan)), stderr=np.nan, truth=float(r["truth"]),
+                        z=float(r["z"]), covered=bool(r["covered"]), noise_plan=r.get("plan"), noise_run=r.get("run")))
+    return out
+
+
+#: coefficients of ``imulab fit tumble --misalignment-term`` that carry an interval
+TUMBLE_COEFFICIENTS = ("K0", "K1", "K2", "K3", "delta_o_term", "bias", "K2_per_K1", "K3_per_K1", "misalignment")
+
+
+def tumble_rows(base: dict, p: pd.DataFrame, dev) -> list[dict]:
+    """``imulab fit tumble --misalignment-term`` (fit_tumble_means, [SEED001] eq. 5-7) on every accelerometer axis
+    that a position plan tumbles through a full turn in one plane (the seed 001 plan: x and z about y): angle
+    theta with f_i = g sin theta, plateau mean, sem, times and the run's 1/f level. Truth: the same model fitted to
+    the noise-free error model (docs/design.md: M f + b + K2 f^2 + f_i Kc_i.f) at the plateaus' reference forces;
+    exact, because on one plane every quadratic in (sin, cos) lies in the span of 1, sin, cos, sin^2, sin cos."""
+    from assets_lib.calibration.fit_core import flicker_b
+    from assets_lib.calibration.means_fit import fit_tumble_means
+
+    ok = ~p["flagged"].astype(bool).to_numpy() & (p["kind"].to_numpy() == "static")
+    f = p[[f"f_ref_{a}_mps2" for a in AX]].to_numpy(float)[ok]
+    q = p[ok]
+    if len(q) < 8:
+        return []
+    g = float(np.median(np.linalg.norm(f, axis=1)))
+    a_t = dev.accel
+    M = np.asarray(a_t.matrix())
+    det = f @ M.T + np.asarray(a_t.bias) + np.asarray(a_t.k2) * f**2 + f * (f @ np.asarray(a_t.kc).T)
+    out = []
+    for j in range(3):  # tumble axis j: f_j ~ 0 on every plateau, the other two sweep a full circle
+        i, m = [c for c in range(3) if c != j]
+        if np.max(np.abs(f[:, j])) > 0.02 * g:
+            continue
+        for ax, other in ((i, m), (m, i)):
+            th = np.degrees(np.arctan2(f[:, ax], f[:, other]))
+            if np.ptp(np.sort(np.mod(th, 360.0))) < 270.0 or len(np.unique(np.round(th, 3))) < 6:
+                continue  # not a full turn
+            a = AX[ax]
+            times = (q["t_start_s"].to_numpy(float), q["t_end_s"].to_numpy(float))
+            fit = fit_tumble_means(th, q[f"accel_{a}_mps2_mean"].to_numpy(float), q[f"accel_{a}_mps2_sem"].to_numpy(float),
+                                   output_unit="m/s^2", misalignment_term=True, times=times,
+                                   flicker_b=flicker_b(p, f"accel_{a}_mps2"))
+            tru = fit_tumble_means(th, det[:, ax], None, output_unit="m/s^2", misalignment_term=True, exclusion="none")
+            for c in TUMBLE_COEFFICIENTS:
+                co, ct = fit.coefficient(c), tru.coefficient(c)
+                if co.observable and ct.observable and np.isfinite(co.stderr) and co.stderr > 0:
+                    out.append(_row(base, "accel", a, c, "tumble", co.value, co.stderr, co.ci95_low, co.ci95_high,
+                                    ct.value))
+    return out
+
+
+def tablefree_rows(base: dict, seed: int, k: int) -> list[dict]:
+    """The table-free fits (benchmarks/mc_tablefree_coverage.py's trial: a hand-placed session, static-pose
+    detection, the Tedaldi accelerometer fit and the gyro integration fit) on a trial-specific seed; fit
+    'tablefree', coefficients renamed to the families used here (t_ij -> misalignment_ij, k_a -> scale_factor_a,
+    b_a -> bias_a). The hand-session device is not graded: grade 'ungraded'."""
+    import mc_tablefree_coverage as tf
+
+    out = []
+    for name, v, s, t, hit in tf.trial(seed * 1_000_003 + k + 7):
+        sensor, c = name.split("_", 1)
+        if c.startswith("t") and c[1:].isdigit():
+            coef, axis = f"misalignment_{AX[int(c[1])]}{AX[int(c[2])]}", AX[int(c[1])]
+        else:
+            kind, axis = c.split("_")
+            coef = {"k": "scale_factor", "b": "bias"}[kind] + f"_{axis}"
+        out.append(dict(base, grade="ungraded", sensor=sensor, axis=axis, coefficient=coef, fit="tablefree", value=v,
+                        stderr=s, truth=t, z=(v - t) / s, covered=bool(hit)))
+    return out
 
 
 def rate_means(p: pd.DataFrame) -> dict:
-    """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab without raw logs would tabulate it: table
-    rate about the axis, plateau mean and sem of that axis (no plateau times: no correlated-noise model)."""
+    """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab would tabulate it: table rate about the
+    axis, plateau mean and sem of that axis, plateau start/end times and the run's 1/f level B (segmentation's
+    ``*_flicker_b``) for the correlated-noise model."""
+    from assets_lib.calibration.fit_core import flicker_b
     from assets_lib.calibration.means_fit import fit_rate_means
     from assets_lib.calibration.rate_fit import on_axis_rows
 
     om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
     ea = p[[f"omega_earth_{a}_radps" for a in AX]].to_numpy(float)
+    fr = p[[f"f_ref_{a}_mps2" for a in AX]].to_numpy(float)
     ok = ~p["flagged"].astype(bool).to_numpy()
+    rate = p["kind"].to_numpy() == "rate"
     out = {}
     for i, a in enumerate(AX):
         rows = on_axis_rows(om, i) & ok
+        # one mounting, as a lab tabulates a sweep: the zero-rate plateaus of the other orientations carry a
+        # different g-sensitivity bias G f, which the means model (no force columns) would read as asymmetry
+        if (rows & rate).any():
+            f0 = np.median(fr[rows & rate], axis=0)
+            rows &= np.linalg.norm(fr - f0, axis=1) < 1.0
         if rows.sum() >= 5:
+            times = None
+            if "t_start_s" in p and "t_end_s" in p:
+                times = (p.loc[rows, "t_start_s"].to_numpy(float), p.loc[rows, "t_end_s"].to_numpy(float))
             out[a] = fit_rate_means((om - ea)[rows, i], p.loc[rows, f"gyro_{a}_radps_mean"].to_numpy(float),
                                     p.loc[rows, f"gyro_{a}_radps_sem"].to_numpy(float), rate_unit="rad/s",
-                                    output_unit="rad/s")
+                                    output_unit="rad/s", times=times, flicker_b=flicker_b(p, f"gyro_{a}_radps"))
     return out
 
 
@@ -289,8 +418,8 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
         if name.startswith("family_"):  # a rate-fit family depends on the rate plan only, and so on
             plan = name.removeprefix("family_")
             if plan in ("rate_plan", "pos_plan"):
-                keep = t["family"].str.contains(":rate:|:difference:|:means:") == (plan == "rate_plan")
-                t = t[keep]
+                keep = t["family"].str.contains(":rate:|:difference:|:means:") == (plan == "rate_plan")  # tumble: pos
+                t = t[keep & ~t["family"].str.contains(":tablefree:|:noise:")]  # hand sessions, static runs: no plan
         t["meets"] = [meets(r) for r in t.to_dict("records")]
         tabs[name] = t.reset_index(drop=True)
     gate = gate.assign(plan=np.where(gate["coefficient"].str.startswith("rate"), gate["rate_plan"], gate["pos_plan"]))
@@ -312,7 +441,11 @@ def markdown(tabs: dict, meta: dict) -> str:
         "# Calibration coverage (Monte Carlo, pipeline code path)",
         "",
         (f"{meta['trials']} trials (seed {meta['seed']}, plans {meta['plans']}), {int(fam['n'].sum())} estimates, "
-        f"{meta['seconds']} s. Generated by `{meta['command']}`."),
+        f"{meta['seconds']} s. Generated by `{meta['command']}`."
+         + (f" Stopped by the time budget after {meta['trials']} of {meta['trials_requested']} requested trials."
+            if meta.get("trials_requested", meta["trials"]) > meta["trials"] else "")
+         + ("" if meta.get("noise_scored") else " Noise terms not scored (benchmarks/coverage_noise.py absent or "
+                                                "--noise-every 0).")),
         "",
         (f"Targets per family: 95 % coverage {TARGET_COVERAGE[0]:.2f}-{TARGET_COVERAGE[1]:.2f}, |mean z| < "
         f"{TARGET_MEAN_Z}, z sd {TARGET_SD_Z[0]}-{TARGET_SD_Z[1]}. ± are trial-clustered standard errors. "
@@ -348,15 +481,38 @@ def markdown(tabs: dict, meta: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(seed: int, trials: int, workers: int = 1, quick: bool = False) -> pd.DataFrame:
-    jobs = [(seed, k, quick) for k in range(trials)]
+def run(seed: int, trials: int, workers: int = 1, quick: bool = False, budget_s: float | None = None,
+        noise_every: int = 1) -> pd.DataFrame:
+    """Trials 0..trials-1; with ``budget_s`` no trial starts after that many seconds (the trials done are scored:
+    a shared machine's honest partial run instead of a killed one)."""
+    t0 = time.time()
+    jobs = [(seed, k, quick, noise_every) for k in range(trials)]
     recs: list[dict] = []
+
+    def in_time():
+        return budget_s is None or time.time() - t0 < budget_s
+
     if workers > 1:
+        from concurrent.futures import FIRST_COMPLETED, wait
+
         with ProcessPoolExecutor(workers) as ex:
-            for r in ex.map(trial, jobs, chunksize=1):
-                recs.extend(r)
+            it = iter(jobs)
+            pending = set()
+            for j in it:
+                pending.add(ex.submit(trial, j))
+                if len(pending) >= workers:
+                    break
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    recs.extend(f.result())
+                    j = next(it, None) if in_time() else None
+                    if j is not None:
+                        pending.add(ex.submit(trial, j))
     else:
         for j in jobs:
+            if not in_time():
+                break
             recs.extend(trial(j))
     return pd.DataFrame(recs)
 
@@ -369,13 +525,24 @@ def main(argv=None):
     ap.add_argument("--plans", choices=("all", "quick"), default="all")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "calibration_coverage")
     ap.add_argument("--records", action="store_true", help="also write every estimate to <out>.records.csv")
+    ap.add_argument("--budget-s", type=float, default=None,
+                    help="start no trial after this many seconds; the trials done are scored and reported")
+    ap.add_argument("--noise-every", type=int, default=1,
+                    help="score the noise intervals (benchmarks/coverage_noise.py) on every N-th trial; 0: never")
     args = ap.parse_args(argv)
     t0 = time.time()
-    df = run(args.seed, args.trials, args.workers, args.plans == "quick")
+    noise_on = args.noise_every > 0 and _noise_module() is not None
+    if _noise_module() is None:
+        print("benchmarks/coverage_noise.py (score_noise) not found: noise terms not scored in this run", file=sys.stderr)
+    df = run(args.seed, args.trials, args.workers, args.plans == "quick", args.budget_s, args.noise_every)
     tabs = summarize(df)
+    done = int(df["trial"].nunique()) if len(df) else 0
     cmd = (f"python benchmarks/mc_calibration_coverage.py --seed {args.seed} --trials {args.trials} "
-           f"--workers {args.workers} --plans {args.plans}")
-    meta = {"seed": args.seed, "trials": args.trials, "plans": args.plans, "seconds": round(time.time() - t0, 1), "command": cmd}
+           f"--workers {args.workers} --plans {args.plans}"
+           + (f" --budget-s {args.budget_s:g}" if args.budget_s is not None else "")
+           + (f" --noise-every {args.noise_every}" if args.noise_every != 1 else ""))
+    meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "plans": args.plans,
+            "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": noise_on}
     text = markdown(tabs, meta)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".md").write_text(text)

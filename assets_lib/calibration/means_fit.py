@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear
+from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear, flicker_prior_tau2
 from assets_lib.calibration.rate_fit import compression_note, sweep_asymmetry, sweep_nonlinearity, sweep_screen_columns
 from assets_lib.calibration.saturation import detect_saturation
 from assets_lib.coefficient import Coefficient, ratio_with_stderr
@@ -143,6 +143,18 @@ def _check_mode(exclusion: str):
         raise ValueError(f"exclusion must be one of {EXCLUSION_MODES}, not {exclusion!r}")
 
 
+def _plateau_times(times, n: int):
+    """(t_mid_s, t_len_s) for fit_linear from (t_start_s, t_end_s) of n plateaus, or None."""
+    if times is None:
+        return None
+    a, b = (np.asarray(v, float) for v in times)
+    if a.shape != (n,) or b.shape != (n,):
+        raise ValueError(f"times: expected (t_start_s, t_end_s) arrays of {n} plateaus, got shapes {a.shape}, {b.shape}")
+    if np.any(b < a):
+        raise ValueError(f"times: plateau {int(np.flatnonzero(b < a)[0])} ends (t_end_s) before it starts (t_start_s)")
+    return 0.5 * (a + b), b - a
+
+
 def fit_rate_means(
     rate,
     output,
@@ -153,6 +165,8 @@ def fit_rate_means(
     exclusion: str = "auto",
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
+    times=None,
+    flicker_b: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
@@ -162,6 +176,11 @@ def fit_rate_means(
     'flat-top' (only plateaus whose output stopped following the input), 'none'. Coefficients: ``zero_output`` U0 [output unit],
     ``scale_factor`` K [output unit per rate unit], ``bias_equivalent`` U0/K [rate unit], ``nonlinearity`` and
     ``asymmetry`` [ppm], ``scale_factor_pos/neg``.
+
+    ``times`` (t_start_s, t_end_s) of every plateau and ``flicker_b`` (the run's 1/f level B, output unit) enable
+    the correlated-noise GLS of :func:`~assets_lib.calibration.fit_core.fit_linear` (as the rate fit has it):
+    without them the plateaus are independent, which bias instability breaks (the 1/f noise shared between
+    plateaus minutes apart; means-fit K+, K-, asymmetry z sd 1.1-1.5 in the coverage benchmark).
     """
     _check_mode(exclusion)
     if rate_unit not in GYRO_UNITS_TO_RADPS:
@@ -180,9 +199,11 @@ def fit_rate_means(
     scales = np.array([1.0, max(np.nanmax(np.abs(w)), 1e-300)])
     sweep = np.ones(len(w), bool)
     note = compression_note(w, sweep, sat, sign_gain=np.sign(np.nanmedian(np.diff(y[np.argsort(w)])) or 1.0))
+    tm = _plateau_times(times, len(w))
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
-                     screen_columns=sweep_screen_columns(w, np.isfinite(w)))
+                     screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
+                     flicker_tau2=flicker_prior_tau2(flicker_b))
     U0, sU0 = fit.get("zero_output")
     K, sK = fit.get("scale_factor")
     k = fit.names.index("scale_factor")
@@ -195,14 +216,15 @@ def fit_rate_means(
         coefs.append(_coef(fit, "bias_equivalent", be / fac, sbe / fac, rate_unit,
                            note="zero output expressed as input rate, U0/K"))
     nz = np.abs(w) > 0
-    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K)
+    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K, tm)
     ok = bool(np.isfinite(nl))  # the interval is clipped at zero: nonlinearity is a magnitude
     est = Coefficient(nl * 1e6, nls * 1e6, "ppm", ok, max(nl - 1.96 * nls, 0.0) * 1e6, (nl + 1.96 * nls) * 1e6)
     coefs.append(MeansCoefficient("nonlinearity", est,
                              f"max |residual| over full-scale output |K| max|w| = {fs:.6g} {ou}, worst at "
                              f"{at / fac:+.6g} {rate_unit}; noise floor (95 %) {floor * 1e6:.3g} ppm"))
     pre_asym = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
-    kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol)
+    kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol,
+                                                      times=tm, flicker_tau2=fit.flicker_tau2)
     kk = fa.k95 if fa is not None else 1.96
     for name, v, s, u in (("scale_factor_pos", kp * fac, sp * fac, f"{ou}/({rate_unit})"),
                           ("scale_factor_neg", kn * fac, sn * fac, f"{ou}/({rate_unit})"),
@@ -226,6 +248,8 @@ def fit_tumble_means(
     exclusion: str = "auto",
     alpha: float = DEFAULT_ALPHA,
     rel_tol: float = DEFAULT_REL_TOL,
+    times=None,
+    flicker_b: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
@@ -233,6 +257,7 @@ def fit_tumble_means(
     K3/K1 [ug/g^2]; with ``misalignment_term`` also delta_o (cos theta term / K1) [rad]. Coefficients the
     positions cannot separate are reported unobservable (e.g. K2 without a horizontal position).
     ``exclusion``: 'auto' (Bonferroni outlier test) or 'none' ('saturation' and 'flat-top' act like 'none').
+    ``times`` / ``flicker_b``: plateau (t_start_s, t_end_s) and the run's 1/f level, as in :func:`fit_rate_means`.
     """
     _check_mode(exclusion)
     if angle_unit not in ANGLE_UNITS_TO_RAD:
@@ -256,7 +281,8 @@ def fit_tumble_means(
     A = np.column_stack(cols)
     scales = np.array([1.0, 1.0] + ([1.0] if misalignment_term else []) + [1.0, 0.5])
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=np.array(optional), rel_tol=rel_tol,
-                     outlier_test=exclusion == "auto", alpha=alpha)
+                     outlier_test=exclusion == "auto", alpha=alpha, times=_plateau_times(times, len(th)),
+                     flicker_tau2=flicker_prior_tau2(flicker_b))
     coefs = []
     units = {"K0": ou, "K1": f"{ou}/g", "K2": f"{ou}/g^2", "K3": f"{ou}/g^2", "delta_o_term": f"{ou}/g"}
     for j, nm in enumerate(names):

@@ -8,9 +8,16 @@ method. Misalignment is observable only when the plateaus excite the other axes 
 body axes, [SEED000] eq. 13); otherwise it is reported unobservable. See :mod:`assets_lib.calibration.fit_core` for the
 identifiability rule, the exclusion tests and the covariance policy.
 
-Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted line over the full-scale output),
-asymmetry (K+ vs K-, [IEEE952] / [SEED003]) with uncertainties, automatic exclusion of saturated and wild
-plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a cross-check.
+Scale-factor asymmetry ([IEEE952]: K+ vs K-) is part of the model: a hinge column (dK/2)|omega_i| next to
+K_i omega_i, so K_i is the mean of K+ and K-, b_i the output at zero rate, and an asymmetric sensor's |omega|
+signature no longer goes to the bias and the residual scatter (the coverage benchmark: consumer K z sd 1.9 with
+asymmetry injected and a straight-line model). The column is optional: a schedule that cannot separate it from
+the bias reports the asymmetry unobservable and fits the straight line.
+
+Also: scale-factor nonlinearity ([SEED003]: max deviation from the fitted straight line over the full-scale
+output; the same fit without the hinge), K+, K- and asymmetry with uncertainties, automatic exclusion of
+saturated and wild plateaus with reasons, and [SEED000]'s +/- full-revolution difference method (eq. 9-13) as a
+cross-check.
 
 g-sensitivity enters as centred nuisance columns: the bias shifts between the rate tests' orientations (G f)
 are absorbed even when G is not separable from the bias, and the bias is then reported at the schedule's mean
@@ -200,7 +207,13 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     nu = None if nuisance is None else np.r_[nuisance[: main_col + 1], False, nuisance[main_col + 1 :]]
     f = fit_linear(Ah, y, nh, sigma=sigma, scales=sc, optional=op, rel_tol=rel_tol, pre_excluded=pre, outlier_test=False,
                    nuisance=nu, times=times, flicker_tau2=flicker_tau2)
-    k, d = main_col, main_col + 1
+    return hinge_coefficients(f, main_col, main_col + 1)
+
+
+def hinge_coefficients(f: LinearFit, k: int, d: int):
+    """K+, sK+, K-, sK-, asymmetry, s_asymmetry of a fit with the mean scale factor in column ``k`` and the hinge
+    term dK/2 (of |w|) in column ``d`` ([IEEE952]: K+- = Kbar +- dK/2, asymmetry = dK / Kbar); NaN when either
+    is unobservable. Returns the fit as the 7th element."""
     if not (f.observable[k] and f.observable[d]):
         return (np.nan,) * 6 + (f,)
     a, hd = f.value[k], f.value[d]
@@ -404,7 +417,13 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
                               x_factor=RADPS_TO_DEGPS, sample_sigma=ss)
         sat = {int(rows[k]): v for k, v in s.items()}
         pre_i.update(sat)
-    nuisance = [False] * 4
+    # [IEEE952] scale-factor asymmetry in the main model: y = ... + Kbar w + (dK/2)|w|. Without it an asymmetric
+    # sensor's |w| signature went to the residuals and the bias (rate-fit K z sd 1.9, consumer, coverage benchmark)
+    cols.append(np.abs(om[:, i]))
+    names.append("sf_asymmetry_term")
+    scales.append(w_fs)
+    optional.append(True)
+    nuisance = [False] * 5
     f_bar = None
     if use_g:
         # g-sensitivity as centred nuisance columns: they absorb the bias shifts between orientations (G f) even
@@ -460,10 +479,16 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
             sb = float(np.sqrt(gvec @ C @ gvec))
         else:
             bias_force = f_bar
-    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, om[:, i], rate_rows, K, tm)
-    pre_asym = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
-    kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, om[:, i], ks, pre_asym, scales, optional, rel_tol,
-                                                      nuisance, times=tm, flicker_tau2=fit.flicker_tau2)
+    # nonlinearity ([SEED003] eq. 4-6) is the deviation from the straight line: the same fit without the hinge
+    kh = names.index("sf_asymmetry_term")
+    line = np.arange(len(names)) != kh
+    pre_line = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
+    fit_line = fit_linear(A[:, line], y, [n for n in names if n != "sf_asymmetry_term"], sigma=sig, scales=scales[line],
+                          optional=optional[line], rel_tol=rel_tol, pre_excluded=pre_line, outlier_test=False,
+                          nuisance=nuisance[line], times=tm, flicker_tau2=fit.flicker_tau2 or None)
+    K_line = fit_line.get("scale_factor")[0]
+    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit_line, A[:, line], om[:, i], rate_rows, K_line, tm)
+    kp, sp, kn, sn, asym, sasym, fa = hinge_coefficients(fit, ks, names.index("sf_asymmetry_term"))
     if not np.isfinite(asym):
         fa = None
     ok_nl, ok_asym = bool(np.isfinite(nl)), bool(np.isfinite(asym))

@@ -91,11 +91,15 @@ def detect_saturation(
     if rail and any(ends):
         keep = np.array([int(idx[k]) not in out for k in range(len(idx))])
         if keep.sum() >= 3:
-            ts = stats.theilslopes(ys[keep], xs[keep])
-            line = ts.intercept + ts.slope * xs
             for flagged, seq in zip(ends, (list(order[::-1]), list(order))):
                 if not flagged:
                     continue
+                # the line of this end's side (and zero input): an asymmetric sensor (K+ != K-, [IEEE952]) reaches
+                # the rail on one side at a smaller input than the two-sided line predicts
+                side = keep & (np.sign(xs) != -np.sign(xs[flagged[0][0]]))
+                ts = stats.theilslopes(ys[side], xs[side]) if side.sum() >= 3 and np.ptp(xs[side]) > 0 else \
+                    stats.theilslopes(ys[keep], xs[keep])
+                line = ts.intercept + ts.slope * xs
                 y_rail = float(np.median([ys[j] for j, _, _ in flagged]))
                 direction = np.sign(y_rail - np.median(ys))
                 inner = [k for k in seq if int(idx[k]) not in out]

@@ -30,6 +30,9 @@ class PooledAllanFit:
     n2: np.ndarray
     flicker_avar: float  # (2 ln 2 / pi) B^2
     k2: float
+    #: (2 ln 2 / pi) B^2 of the same fit with the B term kept (no MODEL_PENALTY): the best estimate of a 1/f level
+    #: the selection did not admit into the SEM model (an undetected B is not a zero one: the run mean still wanders)
+    flicker_avar_estimate: float = 0.0
 
     def avar(self, k: int, tau_s: float | np.ndarray) -> np.ndarray:
         """[IEEE952] eq. C.23 for plateau k: 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau / 3."""
@@ -86,14 +89,17 @@ def fit_pooled_allan(segments: list[np.ndarray], dt_s: float, max_cluster_fracti
     a_mat = np.column_stack([3.0 / tau**2, 1.0 / tau, np.ones_like(tau), tau / 3.0])
     w = np.sqrt(e_sum[ok])
     best = None
+    fits = {}
     for cols in ((0, 1), (0, 1, 2), (0, 1, 3), (0, 1, 2, 3)):
         coef, chi2 = _irls_nnls(a_mat[:, cols], pooled, w)
         score = chi2 + MODEL_PENALTY * (len(cols) - 2)
+        full = np.zeros(4)
+        full[list(cols)] = coef
+        fits[cols] = full
         if best is None or score < best[0]:
-            full = np.zeros(4)
-            full[list(cols)] = coef
             best = (score, full)
     q2, n2, fl, k2 = best[1]
+    fl_est = float(fits[(0, 1, 2, 3) if k2 > 0 else (0, 1, 2)][2])  # B kept, K as selected
     model = a_mat @ best[1]
     short = grid[ok] <= 16
     scale = np.ones(p)
@@ -102,7 +108,7 @@ def fit_pooled_allan(segments: list[np.ndarray], dt_s: float, max_cluster_fracti
         r = r[np.isfinite(r)]
         if r.size:
             scale[k] = float(np.median(r))
-    return PooledAllanFit(scale * q2, scale * n2, float(fl), float(k2))
+    return PooledAllanFit(scale * q2, scale * n2, float(fl), float(k2), fl_est)
 
 
 def _irls_nnls(a_mat: np.ndarray, y: np.ndarray, w: np.ndarray, passes: int = 3) -> tuple[np.ndarray, float]:
