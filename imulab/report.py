@@ -90,3 +90,9 @@ def print_outputs(store_dir: Path, echo=print) -> None:
     if "fleet_drift" in assets and st.partitions("fleet_drift"):
         d = st.version_dir("fleet_drift", st.partitions("fleet_drift")[0])
         echo(f"\nfleet drift: {d / 'drift.parquet'}  plots: {', '.join(p.name for p in sorted(d.glob('*.png')))}")
+    if "sim_to_real" in assets and st.partitions("sim_to_real"):
+        echo("\nsim-to-real diagnosis (verdict per device, its report):")
+        for dev in st.partitions("sim_to_real"):
+            d = st.version_dir("sim_to_real", dev)
+            verdict = st.read_meta("sim_to_real", dev).get("verdict", "?")
+            echo(f"  {dev:<10} {verdict:<17} {d / (dev + '.html')}")

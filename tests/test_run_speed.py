@@ -152,6 +152,20 @@ def test_headline_table_skips_runs_whose_record_is_invalid(tmp_path):
     assert "999999" not in text and "skipped, invalid record: DEV pc01-rate" in text
 
 
+def test_outputs_name_each_devices_sim_to_real_verdict(tmp_path):
+    """The run's closing listing gives every diagnosed device's verdict and its report (the README promises it)."""
+    from assets_lib.store import VersionedStore
+    from imulab.report import print_outputs
+
+    st = VersionedStore(tmp_path / "store")
+    st.write("sim_to_real", "DEV", "v0", {}, meta={"verdict": "partly_explained"},
+             files={"DEV.html": b"<html></html>"})
+    lines: list[str] = []
+    print_outputs(tmp_path / "store", echo=lines.append)
+    row = [ln for ln in lines if ln.strip().startswith("DEV ")]
+    assert row and "partly_explained" in row[0] and row[0].rstrip().endswith("DEV.html")
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # real processes: the unchanged archive, the reprocess lock
 # ---------------------------------------------------------------------------------------------------------------
