@@ -56,7 +56,6 @@ Writes benchmarks/results/noise_coverage.{json,md} (or --out).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -69,15 +68,23 @@ from scipy import stats
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+from coverage_stats import (  # benchmarks/ is on sys.path
+    TARGET_COVERAGE,
+    TARGET_MEAN_Z,
+    TARGET_SD_Z,
+    Z95,
+    clustered,
+    meets_two_sided,
+    write_results,
+)
+from coverage_stats import fmt as _fmt
 
 GRADES = ("navigation", "tactical", "consumer")
 PLANS = ("device", "extra_terms", "markov")
 TERMS = ("Q", "N", "B", "K", "R")
-Z95 = 1.959963984540054
-TARGET_COVERAGE = (0.93, 0.97)
 TARGET_BOUND = 0.95
-TARGET_MEAN_Z = 0.1
-TARGET_SD_Z = (0.9, 1.1)
 
 
 def _extra_effect(device_noise: dict, duration_s: float, rng: np.random.Generator, plan: str):
@@ -275,39 +282,10 @@ def run(seed: int, trials: int, workers: int = 1, duration_s: float = 1200.0, cy
     return pd.DataFrame(recs)
 
 
-def clustered(d: pd.DataFrame) -> dict:
-    """Coverage, mean z and sd z with trial-clustered standard errors (estimates of one trial share a device)."""
-    g = d.groupby("trial")
-    n_t = g.size().to_numpy(float)
-    N, T = n_t.sum(), len(n_t)
-    corr = T / (T - 1) if T > 1 else np.nan
-    c_t = g["covered"].sum().to_numpy(float)
-    cov = c_t.sum() / N
-    out = {"n": int(N), "trials": T, "coverage": cov, "coverage_se": float(np.sqrt(corr * np.sum((c_t - cov * n_t) ** 2)) / N)}
-    dz = d[np.isfinite(d["z"])]
-    if len(dz) > 1:
-        gz = dz.groupby("trial")
-        nz = gz.size().to_numpy(float)
-        s1 = gz["z"].sum().to_numpy(float)
-        s2 = gz["z"].apply(lambda v: float(np.sum(v**2))).to_numpy(float)
-        Nz = nz.sum()
-        mz, m2 = s1.sum() / Nz, s2.sum() / Nz
-        sd = float(np.sqrt(max(m2 - mz**2, 0.0) * Nz / max(Nz - 1, 1)))
-        cz = len(nz) / (len(nz) - 1) if len(nz) > 1 else np.nan
-        out.update(mean_z=mz, mean_z_se=float(np.sqrt(cz * np.sum((s1 - mz * nz) ** 2)) / Nz), sd_z=sd,
-                   sd_z_se=float(np.sqrt(cz * np.sum((s2 - m2 * nz) ** 2)) / Nz / (2 * sd)) if sd > 0 else np.nan)
-    else:
-        out.update(mean_z=np.nan, mean_z_se=np.nan, sd_z=np.nan, sd_z_se=np.nan)
-    return out
-
-
 def meets(r: dict) -> bool:
     if str(r["family"]).endswith(":bound"):
         return bool(r["coverage"] >= TARGET_BOUND)
-    ok = TARGET_COVERAGE[0] <= r["coverage"] <= TARGET_COVERAGE[1]
-    if np.isfinite(r["mean_z"]):
-        ok &= abs(r["mean_z"]) < TARGET_MEAN_Z and TARGET_SD_Z[0] <= r["sd_z"] <= TARGET_SD_Z[1]
-    return bool(ok)
+    return meets_two_sided(r)
 
 
 def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
@@ -327,12 +305,6 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
                      "coverage": c["coverage"], "coverage_se": c["coverage_se"]})
     tabs["term_all_reports"] = pd.DataFrame(rows)
     return tabs
-
-
-def _fmt(v, se=None, f="{:.3f}"):
-    if v is None or not np.isfinite(v):
-        return "-"
-    return f.format(v) + (f" ± {se:.3f}" if se is not None and np.isfinite(se) else "")
 
 
 def markdown(tabs: dict, meta: dict) -> str:
@@ -391,12 +363,7 @@ def main(argv=None) -> int:
     meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "duration_s": args.duration, "cycles": args.cycles,
             "seconds": round(time.time() - t0, 1), "command": cmd}
     text = markdown(tabs, meta)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(text)
-    if args.records:
-        df.to_csv(args.out.with_suffix(".records.csv"), index=False)
-    args.out.with_suffix(".json").write_text(json.dumps(
-        {"meta": meta, **{k: t.to_dict(orient="records") for k, t in tabs.items()}}, indent=1, default=float) + "\n")
+    write_results(args.out, tabs, meta, text, df if args.records else None)
     print(text)
     return 0 if bool(tabs["family"]["meets"].all()) else 1
 

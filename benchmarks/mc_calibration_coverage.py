@@ -65,7 +65,6 @@ Not scored here (stated, so no printed interval passes unchecked):
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 import time
@@ -79,6 +78,17 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
+from coverage_stats import (  # benchmarks/ is on sys.path
+    TARGET_COVERAGE,
+    TARGET_MEAN_Z,
+    TARGET_SD_Z,
+    Z95,
+    clustered,
+    meets_two_sided,
+    write_results,
+)
+from coverage_stats import fmt as _fmt
+
 AX = "xyz"
 GRADES = ("navigation", "tactical", "consumer")
 #: plan name -> dwell-time scale (the seeds' full plans last hours; the scale keeps a trial at a few minutes)
@@ -86,10 +96,6 @@ RATE_PLANS = {"quick_rate": 1.0, "seed003_rate_sequence": 0.1}
 POS_PLANS = {"quick_24_position": 1.0, "six_position": 1.0, "seed000_8_position": 0.05,
              "seed001_12_position_tumble": 1.0, "seed003_24_position": 0.125}
 QUICK = (("quick_rate",), ("quick_24_position",))
-TARGET_COVERAGE = (0.93, 0.97)
-TARGET_MEAN_Z = 0.1
-TARGET_SD_Z = (0.9, 1.1)
-Z95 = 1.959963984540054
 #: 1-sigma of the injected gyro scale-factor asymmetry (K+ - K-)/K per grade (odd plan cycles; effects.md magnitudes)
 ASYMMETRY_SD = {"navigation": 20e-6, "tactical": 300e-6, "consumer": 3e-3}
 
@@ -369,42 +375,6 @@ def family(df: pd.DataFrame) -> pd.Series:
     return df["sensor"] + ":" + df["fit"] + ":" + df["coefficient"].str.replace(r"_[xyz]{1,2}$", "", regex=True)
 
 
-def clustered(d: pd.DataFrame) -> dict:
-    """Coverage, mean z and sd z with trial-clustered standard errors (cluster-robust ratio estimators)."""
-    g = d.groupby("trial")
-    n_t = g.size().to_numpy(float)
-    N, T = n_t.sum(), len(n_t)
-    corr = T / (T - 1) if T > 1 else np.nan
-    c_t = g["covered"].sum().to_numpy(float)
-    cov = c_t.sum() / N
-    se_cov = np.sqrt(corr * np.sum((c_t - cov * n_t) ** 2)) / N
-    out = {"n": int(N), "trials": T, "coverage": cov, "coverage_se": se_cov}
-    zz = d["z"].to_numpy(float)
-    if np.isfinite(zz).any():
-        dz = d[np.isfinite(d["z"])]
-        gz = dz.groupby("trial")
-        nz = gz.size().to_numpy(float)
-        s1 = gz["z"].sum().to_numpy(float)
-        s2 = gz["z"].apply(lambda v: float(np.sum(v**2))).to_numpy(float)
-        Nz = nz.sum()
-        mz = s1.sum() / Nz
-        m2 = s2.sum() / Nz
-        sd = float(np.sqrt(max(m2 - mz**2, 0.0) * Nz / max(Nz - 1, 1)))
-        se_m = np.sqrt(corr * np.sum((s1 - mz * nz) ** 2)) / Nz
-        se_m2 = np.sqrt(corr * np.sum((s2 - m2 * nz) ** 2)) / Nz
-        out.update(mean_z=mz, mean_z_se=se_m, sd_z=sd, sd_z_se=se_m2 / (2 * sd) if sd > 0 else np.nan)
-    else:
-        out.update(mean_z=np.nan, mean_z_se=np.nan, sd_z=np.nan, sd_z_se=np.nan)
-    return out
-
-
-def meets(r) -> bool:
-    ok = TARGET_COVERAGE[0] <= r["coverage"] <= TARGET_COVERAGE[1]
-    if np.isfinite(r["mean_z"]):
-        ok &= abs(r["mean_z"]) < TARGET_MEAN_Z and TARGET_SD_Z[0] <= r["sd_z"] <= TARGET_SD_Z[1]
-    return bool(ok)
-
-
 def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
     gate = df[df["fit"] == "gate"]
     df = df[df["fit"] != "gate"]
@@ -420,19 +390,13 @@ def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:
             if plan in ("rate_plan", "pos_plan"):
                 keep = t["family"].str.contains(":rate:|:difference:|:means:") == (plan == "rate_plan")  # tumble: pos
                 t = t[keep & ~t["family"].str.contains(":tablefree:|:noise:")]  # hand sessions, static runs: no plan
-        t["meets"] = [meets(r) for r in t.to_dict("records")]
+        t["meets"] = [meets_two_sided(r) for r in t.to_dict("records")]
         tabs[name] = t.reset_index(drop=True)
     gate = gate.assign(plan=np.where(gate["coefficient"].str.startswith("rate"), gate["rate_plan"], gate["pos_plan"]))
     rows = [{"run": c.split("_")[0], "plan": plan, "grade": g, "runs": len(d), "passed": int(d["covered"].sum())}
             for (c, plan, g), d in gate.groupby(["coefficient", "plan", "grade"])]
     tabs["gate"] = pd.DataFrame(rows, columns=["run", "plan", "grade", "runs", "passed"])
     return tabs
-
-
-def _fmt(v, se=None, f="{:.3f}"):
-    if v is None or not np.isfinite(v):
-        return "-"
-    return f.format(v) + (f" ± {se:.3f}" if se is not None and np.isfinite(se) else "")
 
 
 def markdown(tabs: dict, meta: dict) -> str:
@@ -544,12 +508,7 @@ def main(argv=None):
     meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "plans": args.plans,
             "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": noise_on}
     text = markdown(tabs, meta)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".md").write_text(text)
-    if args.records:
-        df.to_csv(args.out.with_suffix(".records.csv"), index=False)
-    args.out.with_suffix(".json").write_text(json.dumps(
-        {"meta": meta, **{k: t.to_dict(orient="records") for k, t in tabs.items()}}, indent=1, default=float) + "\n")
+    write_results(args.out, tabs, meta, text, df if args.records else None)
     print(text)
     return 0 if bool(tabs["family"]["meets"].all()) else 1
 
