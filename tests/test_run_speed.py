@@ -270,3 +270,18 @@ def test_a_run_launched_outside_imulab_holds_the_workspace_lock(tmp_path, monkey
             assert mine.success  # imulab's own in-process run: its process holds the lock already
         again = job.execute_in_process(instance=inst, tags=tags, run_config=QUIET, raise_on_error=False)
         assert again.success
+
+
+def test_summary_counts_each_invalid_record_with_its_reasons(tmp_path):
+    """The run summary's warnings name every record that is not valid, with its reasons (one reader of record
+    statuses serves the headline table and the summary)."""
+    from assets_lib.store import VersionedStore
+    from imulab.commands.run import record_warnings
+
+    st = VersionedStore(tmp_path / "store")
+    rec = {"pc00-rate": {"status": "valid"}, "pc01-rate": {"status": "invalid", "status_reasons": ["a", "b"]},
+           "pc02-rate": {"status": "invalid"}}
+    st.write("calibration_record", "DEV", "r1", {}, files={f"{k}.json": json.dumps({"content": v}).encode()
+                                                          for k, v in rec.items()})
+    assert record_warnings(st) == ["record DEV/pc01-rate: invalid (a; b)",
+                                   "record DEV/pc02-rate: invalid (no reason given)"]

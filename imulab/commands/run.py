@@ -7,7 +7,6 @@ Exit status: 0 when every partition of every stage is computed (warnings allowed
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -151,20 +150,10 @@ def _finish(plan, summary, vstore, waiting, store, landing, home, t0):
 
 def record_warnings(vstore) -> list[str]:
     """Records whose content status is not valid (``content.status`` / ``content.status_reasons``)."""
-    out = []
-    for dev in vstore.partitions("calibration_record"):
-        for f in sorted(vstore.version_dir("calibration_record", dev).glob("*.json")):
-            if f.name == "meta.json":
-                continue
-            try:
-                content = json.loads(f.read_text()).get("content", {})
-            except (OSError, ValueError):
-                continue
-            status = content.get("status")
-            if status is not None and status != "valid":
-                reasons = "; ".join(map(str, content.get("status_reasons") or [])) or "no reason given"
-                out.append(f"record {dev}/{f.stem}: {status} ({reasons})")
-    return out
+    from imulab.report import record_statuses
+
+    return [f"record {dev}/{run}: {status} ({reasons or 'no reason given'})"
+            for (dev, run), (status, reasons) in record_statuses(vstore).items() if status != "valid"]
 
 
 def print_summary(plan, summary, vstore, waiting: list[str], echo=print) -> bool:
