@@ -15,6 +15,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ingest": ("imulab.commands.ingest", "Validate raw runs and convert them to canonical SI parquet."),
     "run": ("imulab.commands.run", "Materialize the Dagster pipeline over a lab archive."),
     "reprocess": ("imulab.commands.reprocess", "Recompute only stale partitions (changed code or raw input)."),
+    "certificates": ("imulab.commands.certificates", "Render the HTML calibration certificates of the current records."),
+    "plots": ("imulab.commands.plots", "Draw the figures of stored outputs (residual, Allan, segmentation, drift)."),
     "verify": ("imulab.commands.verify", "Recompute a calibration record from the raw archive and check it."),
     "fit": ("imulab.commands.fit", "Fit rate or tumble tables of plateau means (labs without raw logs)."),
     "allan": ("imulab.commands.allan", "Allan deviation and noise identification of a static record."),
@@ -56,6 +58,7 @@ def main():
       imulab run                      # simulate the default lab archive, then calibrate it
       imulab simulate --out ARCHIVE   # write a simulated lab archive
       imulab run --archive ARCHIVE    # ingest + calibrate every completed run in ARCHIVE
+      imulab certificates --archive ARCHIVE   # render the HTML certificates of the records
       imulab allan FILE --plot a.png  # Allan deviation and noise terms of any static record
     """
 

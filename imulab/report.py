@@ -66,6 +66,14 @@ def headline_coefficients(st: VersionedStore, skipped: list[str] | None = None) 
     return df.groupby(["device", "axis"], as_index=False).first()
 
 
+def current_certificates(st: VersionedStore, device: str) -> Path | None:
+    """The folder of the device's certificates when they were rendered from its current record version, else None."""
+    rec, cert = st.current_version("calibration_record", device), st.current_version("certificate", device)
+    if rec is None or cert is None or st.read_meta("certificate", device, cert).get("record_version") != rec:
+        return None
+    return st.version_dir("certificate", device, cert)
+
+
 def print_outputs(store_dir: Path, echo=print) -> None:
     """Where every asset's outputs are, headline coefficients, certificates and drift plots."""
     st = VersionedStore(Path(store_dir))
@@ -82,14 +90,26 @@ def print_outputs(store_dir: Path, echo=print) -> None:
         echo(head.drop(columns=[c for c in ("run",) if c in head]).to_string(index=False))
     for line in skipped:
         echo(f"  skipped, invalid record: {line}")
+    missing = []
     for dev in st.partitions("calibration_record"):
         d = st.version_dir("calibration_record", dev)
-        certs = sorted(d.glob("*.html"))
-        if certs:
-            echo(f"\ncalibration records of {dev}: {d}  ({len(certs)} certificates, e.g. {certs[-1].name})")
+        recs = sorted(p for p in d.glob("*.json") if p.name != "meta.json")
+        echo(f"\ncalibration records of {dev}: {d}  ({len(recs)} records, e.g. {recs[-1].name if recs else '-'})")
+        certs = current_certificates(st, dev)
+        if certs is None:
+            missing.append(dev)
+        else:
+            echo(f"  certificates: {certs}  ({len(list(certs.glob('*.html')))} HTML, verify with `imulab verify "
+                 f"{certs / '<run>.html'}`)")
+    if missing:
+        echo(f"\ncertificates (HTML) not rendered for the current records of {len(missing)} device(s) "
+             f"({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}): `imulab certificates` with this run's "
+             "options renders them into <store>/certificate/<device>/ (or `imulab run --certificates`)")
     if "fleet_drift" in assets and st.partitions("fleet_drift"):
         d = st.version_dir("fleet_drift", st.partitions("fleet_drift")[0])
-        echo(f"\nfleet drift: {d / 'drift.parquet'}  plots: {', '.join(p.name for p in sorted(d.glob('*.png')))}")
+        echo(f"\nfleet drift: {d / 'drift.parquet'}")
+    if any(st.partitions(a) for a in assets):
+        echo("figures (segmentation, residual, Allan, drift plots): `imulab plots` draws them from the store")
     if "sim_to_real" in assets and st.partitions("sim_to_real"):
         echo("\nsim-to-real diagnosis (verdict per device, its report):")
         for dev in st.partitions("sim_to_real"):

@@ -85,7 +85,8 @@ def lab():
     assert dev_runs and all(ok for _, _, ok in dev_runs), summary.runs
     st = VersionedStore(store)
     vdir = st.version_dir("calibration_record", DEVICE)
-    yield {"root": root, "landing": landing, "store": store, "st": st, "vdir": vdir, "defs": defs,
+    cdir = st.version_dir("certificate", DEVICE)  # the certificate stage ran in the devices job
+    yield {"root": root, "landing": landing, "store": store, "st": st, "vdir": vdir, "cdir": cdir, "defs": defs,
            "dagster_run_ids": [rid for _, rid, _ in dev_runs]}
     shutil.rmtree(root, ignore_errors=True)
 
@@ -146,7 +147,7 @@ def test_record_json_validates_against_schema(lab):
 
 
 def test_certificate_html_has_coefficients_and_plots(lab):
-    html = (lab["vdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
+    html = (lab["cdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
     rec = load_record(lab["vdir"] / f"{RUNS[1]}.json")
     assert rec["record_sha256"] in html and rec["content"]["prev_record_sha256"] in html
     cells = {k: v[0] for k, v in parse_certificate(html).cells.items()}
@@ -159,6 +160,58 @@ def test_certificate_html_has_coefficients_and_plots(lab):
     assert "gyro_rate_fit" in html and "deg/h" in html and "ppm" in html
     assert "banner valid" in html and "banner invalid" not in html
 
+
+
+def test_certificates_are_their_own_stage_with_plots_drawn_from_the_store(lab):
+    """Issue 10 item 8: the record stage writes JSON and records.parquet only (no HTML, no plot); the certificate
+    stage renders one HTML per record of the current record version, with the residual and Allan plots drawn from
+    the stored outputs (the fit and Allan stages store no PNG) and the navigation budget."""
+    st = lab["st"]
+    for dev in (DEVICE, BAD_DEVICE):
+        rdir, cdir = st.version_dir("calibration_record", dev), st.version_dir("certificate", dev)
+        assert not list(rdir.glob("*.html")) and not list(rdir.glob("*.png"))
+        assert st.read_meta("certificate", dev)["record_version"] == st.current_version("calibration_record", dev)
+        listing = st.read("certificate", dev, "certificates")
+        records = st.read("calibration_record", dev, "records")
+        assert list(listing["run_id"]) == list(records["run_id"])
+        assert list(listing["record_sha256"]) == list(records["record_sha256"])
+        for row in listing.itertuples():
+            page = (cdir / row.file).read_text(encoding="utf-8")
+            rec, problems = certificate_problems(page)
+            assert problems == [] and rec == load_record(rdir / f"{row.run_id}.json")
+            assert len(parse_certificate(page).plots) == row.n_plots + (1 if row.navigation_budget else 0)
+    for asset in ("gyro_rate_fit", "accel_multiposition_fit", "allan_deviation", "plateaus"):
+        for key in st.partitions(asset):
+            assert not list(st.version_dir(asset, key).glob("*.png")), (asset, key)
+    plots = parse_certificate((st.version_dir("certificate", DEVICE) / f"{RUNS[0]}.html").read_text()).plots
+    assert set(plots) == {"gyro_rate_fit: residual_vs_rate", "navigation budget"}
+    static = parse_certificate((st.version_dir("certificate", BAD_DEVICE) / f"{STATIC_RUN}.html").read_text()).plots
+    assert {"allan_deviation: allan_gyro", "allan_deviation: allan_accel"} <= set(static)
+    assert all(png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000 for png in [*plots.values(), *static.values()])
+
+
+def test_plots_command_draws_every_figure_from_the_store(lab, tmp_path):
+    """``imulab plots`` draws the figures the run no longer draws (segmentation, residuals, Allan) from the stored
+    versions; --asset/--partition narrow it; an unknown stage is a usage error."""
+    from imulab.cli import main
+
+    out = tmp_path / "plots"
+    res = CliRunner().invoke(main, ["plots", "--store", str(lab["store"]), "--out", str(out)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    got = sorted(str(p.relative_to(out)) for p in out.rglob("*.png"))
+    for run_id in RUNS:
+        assert f"plateaus/{DEVICE}__{run_id}/segmentation.png" in got
+        assert f"gyro_rate_fit/{DEVICE}__{run_id}/residual_vs_rate.png" in got
+    assert f"accel_multiposition_fit/{BAD_DEVICE}__{BAD_RUN}/position_residuals.png" in got
+    assert {f"allan_deviation/{BAD_DEVICE}__{STATIC_RUN}/allan_{s}.png" for s in ("gyro", "accel")} <= set(got)
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in out.rglob("*.png"))
+    assert f"{len(got)} figure(s) drawn" in res.output
+    one = tmp_path / "one"
+    res = CliRunner().invoke(main, ["plots", "--store", str(lab["store"]), "--out", str(one), "--asset",
+                                    "gyro_rate_fit", "--partition", f"{DEVICE}__{RUNS[0]}"], catch_exceptions=False)
+    assert res.exit_code == 0 and [p.name for p in one.rglob("*.png")] == ["residual_vs_rate.png"], res.output
+    res = CliRunner().invoke(main, ["plots", "--store", str(lab["store"]), "--asset", "calibration_record"])
+    assert res.exit_code == 2 and "no figures for" in res.output
 
 def _significant_digits(text: str) -> int:
     mant = text.split("e")[0].lstrip("-").replace(".", "").lstrip("0")
@@ -174,7 +227,7 @@ def _last_digit_exponent(text: str) -> int:
 def test_certificate_values_rounded_to_their_uncertainty(lab):
     """Issue 10 item 7: the certificate prints each value to the decimal place of its standard uncertainty, the
     uncertainty to two significant digits (GUM 7.2.6), not 17 digits."""
-    html = (lab["vdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
+    html = (lab["cdir"] / f"{RUNS[1]}.html").read_text(encoding="utf-8")
     rec = load_record(lab["vdir"] / f"{RUNS[1]}.json")
     visible = html.split("<script type='application/json'")[0]
     cells = {k: v[0] for k, v in parse_certificate(html).cells.items()}
@@ -331,7 +384,7 @@ def test_doubled_lsb_record_is_marked_invalid(lab):
     table = st.read("calibration_record", BAD_DEVICE, "records").set_index("run_id")
     assert table.loc[BAD_RUN, "status"] == "invalid" and "scale_factor" in table.loc[BAD_RUN, "status_reasons"]
     assert table.loc[STATIC_RUN, "status"] == "valid" and table.loc[STATIC_RUN, "status_reasons"] == ""
-    html = (vdir / f"{BAD_RUN}.html").read_text(encoding="utf-8")
+    html = (st.version_dir("certificate", BAD_DEVICE) / f"{BAD_RUN}.html").read_text(encoding="utf-8")
     banner = re.search(r"<div class='banner invalid' role='alert'>(.*?)</div>", html, re.S)
     assert banner and "NOT A VALID CALIBRATION" in banner.group(1) and "scale_factor" in banner.group(1)
     assert "banner valid" not in html
@@ -349,7 +402,7 @@ def test_doubled_lsb_record_is_marked_invalid(lab):
 def test_certificate_verifies_and_edits_are_detected(lab, tmp_path):
     """Issue 10 item 6: ``imulab verify CERT.html`` checks the printed values against the record; an edited number,
     added text or an edited embedded record fails, naming the cell."""
-    cert = lab["vdir"] / f"{RUNS[1]}.html"
+    cert = lab["cdir"] / f"{RUNS[1]}.html"
     res = _verify(cert, "--shallow")
     assert res.exit_code == 0, res.output
     assert "ok   certificate shows exactly its record" in res.output and "VERIFIED" in res.output
@@ -390,7 +443,7 @@ def test_certificate_navigation_budget_verifies_against_the_chain(lab, tmp_path)
     from assets_lib.apply.model import calibration_from_json
     from assets_lib.records.certificate import certificate_html, parse_certificate
 
-    cert = lab["vdir"] / f"{RUNS[1]}.html"
+    cert = lab["cdir"] / f"{RUNS[1]}.html"
     html = cert.read_text(encoding="utf-8")
     assert "What the calibration buys in navigation" in html
     res = _verify(cert, "--shallow")

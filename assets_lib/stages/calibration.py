@@ -7,16 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_report import (
-    plot_multiposition_residuals_png,
-    plot_rate_residuals_png,
-)
 from assets_lib.calibration.multiposition import (
     fit_accel_multiposition,
     fit_gyro_static,
 )
 from assets_lib.calibration.rate_fit import fit_gyro_rate
-from assets_lib.calibration.segmentation import plot_segmentation_png, segment_run
+from assets_lib.calibration.segmentation import segment_run
 from assets_lib.calibration.fit_core import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
 from assets_lib.stages.spec import Gate, StageOutput, stage
 from raw_schemas.manifest import Manifest
@@ -72,7 +68,6 @@ def plateaus(key: str, inputs) -> StageOutput:
             "rejected_fraction_max": float(p["rejected_fraction"].max()) if len(p) else 0.0,
             "segmentation": res.method,
         },
-        plots={"segmentation": plot_segmentation_png(imu, res, title=key)},
     )
 
 
@@ -88,7 +83,6 @@ def gyro_rate_fit(key: str, inputs) -> StageOutput:
         tables={"coefficients": coef, "residuals": resid},
         meta={"excluded": _excluded(resid)},
         summary=_coef_summary(coef, "gyro", ("scale_factor",)),
-        plots={"residual_vs_rate": plot_rate_residuals_png(resid, title=f"{key}: gyro rate-fit residuals")},
     )
 
 
@@ -106,7 +100,6 @@ def accel_multiposition_fit(key: str, inputs) -> StageOutput:
         tables={"coefficients": coef, "residuals": resid},
         meta={"excluded": _excluded(resid)},
         summary=_coef_summary(coef, "accel", ("bias",)),
-        plots={"position_residuals": plot_multiposition_residuals_png(resid, title=f"{key}: multi-position residuals")},
     )
 
 

@@ -1,6 +1,6 @@
 """Stage ``fleet_drift``: every device's calibration coefficients over time, with control limits from the device's
-repeatability, drift and abrupt-shift flags (assets_lib.fleet.drift), a fleet summary and one control chart per
-coefficient family. Run times come from ``ingested_run`` (the manifest's start time), so it is an upstream too;
+repeatability, drift and abrupt-shift flags (assets_lib.fleet.drift) and a fleet summary; one control chart per coefficient family is drawn on
+demand (assets_lib.stages.figures). Run times come from ``ingested_run`` (the manifest's start time), so it is an upstream too;
 without coefficients the stage produces no output."""
 
 from __future__ import annotations
@@ -18,21 +18,11 @@ CONFIG = DriftConfig()
        upstream=("ingested_run", *FIT_ASSETS, "repeatability"))
 def fleet_drift_stage(key: str, inputs) -> StageOutput | None:
     """Coefficient drift per device across runs: weighted trend with CI, control limits from repeatability,
-    drift-beyond-limits and CUSUM abrupt-shift flags, fleet summary and control charts."""
-    frames = []
-    for asset in FIT_ASSETS:
-        for k in inputs.keys_of(asset):
-            frames.append(inputs.table(asset, "coefficients", key=k).assign(source=asset))
-    if not frames:
+    drift-beyond-limits and CUSUM abrupt-shift flags and the fleet summary (control charts: ``imulab plots``,
+    assets_lib.stages.figures)."""
+    fd = drift_of(inputs)
+    if fd is None:
         return None
-    coefs = pd.concat(frames, ignore_index=True)
-    times = pd.DataFrame([
-        {f: inputs.meta("ingested_run", key=k).get(f) for f in ("device_id", "run_id", "start_time_utc")}
-        for k in inputs.keys_of("ingested_run")
-    ], columns=["device_id", "run_id", "start_time_utc"])
-    reps = [inputs.table("repeatability", "repeatability", key=k) for k in inputs.keys_of("repeatability")]
-    rep = pd.concat(reps, ignore_index=True) if reps else None
-    fd = fleet_drift(coefs, times, rep, CONFIG)
     series = fd.series_table()
     warnings = fd.warnings()
     return StageOutput(
@@ -49,5 +39,23 @@ def fleet_drift_stage(key: str, inputs) -> StageOutput | None:
             "n_drift": int(series["drift_flag"].sum()),
             "n_shift": int(series["shift_flag"].sum()),
         },
-        plots=fd.plots(),
     )
+
+
+def drift_of(inputs):
+    """The ``FleetDrift`` of the coefficients, run times and repeatability in ``inputs`` (None without coefficients):
+    the stage's computation, shared with its figures (``assets_lib.stages.figures``)."""
+    frames = []
+    for asset in FIT_ASSETS:
+        for k in inputs.keys_of(asset):
+            frames.append(inputs.table(asset, "coefficients", key=k).assign(source=asset))
+    if not frames:
+        return None
+    coefs = pd.concat(frames, ignore_index=True)
+    times = pd.DataFrame([
+        {f: inputs.meta("ingested_run", key=k).get(f) for f in ("device_id", "run_id", "start_time_utc")}
+        for k in inputs.keys_of("ingested_run")
+    ], columns=["device_id", "run_id", "start_time_utc"])
+    reps = [inputs.table("repeatability", "repeatability", key=k) for k in inputs.keys_of("repeatability")]
+    rep = pd.concat(reps, ignore_index=True) if reps else None
+    return fleet_drift(coefs, times, rep, CONFIG)

@@ -1,5 +1,6 @@
 """Stage ``allan_deviation``: Allan deviation with confidence intervals and IEEE 952 noise identification of every
-long static record, with a log-log plot per sensor and the share of taus where the fitted model matches the curve."""
+long static record, and the share of taus where the fitted model matches the curve. Its log-log plots are drawn
+on demand from the stored inputs (assets_lib.stages.figures), not during the run."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pandas as pd
 
 from assets_lib.calibration.repeatability import STATIC_RUN_COLUMNS, static_terms_row
 from assets_lib.noise.allan import allan_deviations
-from assets_lib.noise.identification import fit_all, noise_table, plot_allan
+from assets_lib.noise.identification import fit_all, noise_table
 from assets_lib.records.validity import MODEL_INSIDE_CI_MIN  # one threshold for the gate and the record's status
 from assets_lib.stages.spec import StageOutput, stage
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
@@ -24,12 +25,8 @@ def allan_deviation(key: str, inputs) -> StageOutput:
     Annex C fit (Q, N, B, K, R with intervals; unsupported terms as upper bounds) beside the slope readings."""
     imu = inputs.table("ingested_run", "imu")
     m = inputs.meta("ingested_run")
-    tables, meta, summary, results, fits = allan_tables(key, imu, m)
-    plots = {
-        "allan_gyro": plot_allan({c: results[c] for c in GYRO_COLUMNS}, {c: fits[c] for c in GYRO_COLUMNS}, title=f"{key}: gyro"),
-        "allan_accel": plot_allan({c: results[c] for c in ACCEL_COLUMNS}, {c: fits[c] for c in ACCEL_COLUMNS}, title=f"{key}: accel"),
-    }
-    return StageOutput(tables=tables, meta=meta, summary=summary, plots=plots)
+    tables, meta, summary, _, _ = allan_tables(key, imu, m)
+    return StageOutput(tables=tables, meta=meta, summary=summary)
 
 
 def allan_tables(key: str, imu: pd.DataFrame, m: dict):

@@ -13,6 +13,7 @@ STAGES = StageGraph([
     noise.allan_deviation,
     repeatability.repeatability,
     records.calibration_record,
+    records.certificate,
     fleet.fleet_drift_stage,
     sim_to_real.sim_to_real,
 ])

@@ -24,14 +24,20 @@ from imulab.commands import workspace_options
 @click.option("--verbose", is_flag=True, help="Show Dagster's event log.")
 @click.option("--skip-stage", "skip", multiple=True, metavar="STAGE",
               help="Leave this stage (and what reads it) out of the run, e.g. the costly sim_to_real; repeatable.")
-def command(landing, store, data_dir, dagster_home, verbose, skip):
+@click.option("--certificates", is_flag=True,
+              help="Also render the HTML certificates (the certificate stage; left out by default, see "
+                   "`imulab certificates`).")
+def command(landing, store, data_dir, dagster_home, verbose, skip, certificates=False):
     """Ingest and calibrate every completed run of a lab archive through Dagster, then print a summary.
 
     With no --archive, the embedded default (a simulated lab archive) is written to <data>/landing first.
     The reprocessing plan runs first: only partitions whose code or inputs changed are computed, in batched runs
     (captures, then devices, then the fleet); an unchanged archive launches nothing. The summary names every
     failed partition with its reason, counts warnings, and the exit status is 1 when anything failed.
+    The HTML certificates are rendered only with --certificates (or by `imulab certificates`): drawing them cost
+    more than the calibration; the records (JSON) are always written.
     """
+    skip = (*skip, *(() if certificates else ON_DEMAND))
     data = Path(data_dir)
     _hold_workspace(data, store, dagster_home)  # released when the command ends
     if landing is None:
@@ -105,6 +111,8 @@ def command(landing, store, data_dir, dagster_home, verbose, skip):
     _finish(plan, summary, vstore, waiting, store, landing, home, t0)
 
 
+#: stages ``imulab run`` leaves out unless asked (``--certificates``; ``imulab certificates``)
+ON_DEMAND = ("certificate",)
 #: the launch summary of a run that launched nothing (``print_summary`` reads ``runs`` and ``warnings``)
 NOTHING_LAUNCHED = SimpleNamespace(runs=[], warnings=[])
 #: the planning view of the stage graph, kept in the store (``assets_lib.stages.graph_cache``)
@@ -112,6 +120,7 @@ GRAPH_CACHE = ".imulab-stage-graph.json"
 
 
 def _without(graph, skip):
+    skip = [n for n in skip if n not in ON_DEMAND or n in graph]  # a graph from before a stage existed
     try:
         return graph.without(skip)
     except KeyError as e:

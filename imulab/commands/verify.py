@@ -164,12 +164,14 @@ def budget_calibration_problems(cert_path: Path, records: list[dict], run_id: st
 
 def locate_workspace(record_path: Path, landing, store_dir, data_dir) -> tuple[Path, Path]:
     """(archive, store) of a record: the options when given; else the store the record lies in
-    (``<store>/calibration_record/<device>/<version>/<run>.json``) and the archive that store names in its
+    (``<store>/calibration_record/<device>/<version>/<run>.json``, or a certificate's
+    ``<store>/certificate/<device>/<version>/<run>.html``) and the archive that store names in its
     ``ARCHIVE`` file (written by ``imulab run``) or ``<data>/landing`` beside it; else ``--data-dir``, relative to
     the working directory."""
     rp = Path(record_path).resolve()
-    in_store = (rp.parent / "records.parquet").is_file() and len(rp.parents) > 3 \
-        and rp.parents[2].name == "calibration_record"
+    in_store = len(rp.parents) > 3 and (
+        ((rp.parent / "records.parquet").is_file() and rp.parents[2].name == "calibration_record")
+        or ((rp.parent / "certificates.parquet").is_file() and rp.parents[2].name == "certificate"))
     if store_dir:
         store = Path(store_dir).resolve()
     else:
