@@ -140,13 +140,16 @@ def test_verify_finds_the_archive_from_another_directory(workspace, tmp_path, mo
     if not (data / "store" / "ARCHIVE").is_file():  # run on its own (the race test leaves a finished workspace)
         rc, out = _finish(_imulab("run", "--archive", archive, "--data-dir", data))
         assert rc == 0, out
-    cert = next((data / "store" / "calibration_record").glob("TST-A/*/pc00-pos24.html"))
+    rc, out = _finish(_imulab("certificates", "--archive", archive, "--data-dir", data))  # rendered on demand
+    assert rc == 0, out
+    cert = next((data / "store" / "certificate").glob("TST-A/*/pc00-pos24.html"))
+    record = next((data / "store" / "calibration_record").glob("TST-A/*/pc00-pos24.json"))
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     monkeypatch.chdir(elsewhere)
     from imulab.cli import main
 
-    for path in (cert, cert.with_suffix(".json")):
+    for path in (cert, record):
         res = CliRunner().invoke(main, ["verify", str(path)], catch_exceptions=False)
         assert res.exit_code == 0, res.output
         assert f"archive {archive.resolve()}, store {(data / 'store').resolve()}" in res.output

@@ -166,6 +166,26 @@ def test_outputs_name_each_devices_sim_to_real_verdict(tmp_path):
     assert row and "partly_explained" in row[0] and row[0].rstrip().endswith("DEV.html")
 
 
+def test_outputs_say_where_the_certificates_are_or_how_to_render_them(tmp_path):
+    """The run's closing listing names each device's certificate folder when the certificates were rendered from
+    its current record version; otherwise (never rendered, or rendered from an older record version) it says
+    how to render them."""
+    from assets_lib.store import VersionedStore
+    from imulab.report import print_outputs
+
+    st = VersionedStore(tmp_path / "store")
+    for dev in ("A", "B", "C"):
+        st.write("calibration_record", dev, "r1", {}, files={"pc00.json": json.dumps({"content": {}}).encode()})
+    st.write("certificate", "A", "c1", {}, meta={"record_version": "r1"}, files={"pc00.html": b"<html></html>"})
+    st.write("certificate", "C", "c0", {}, meta={"record_version": "r0"}, files={"pc00.html": b"<html></html>"})
+    lines: list[str] = []
+    print_outputs(tmp_path / "store", echo=lines.append)
+    text = "\n".join(lines)
+    assert f"certificates: {st.version_dir('certificate', 'A', 'c1')}  (1 HTML" in text
+    assert "not rendered for the current records of 2 device(s) (B, C): `imulab certificates`" in text
+    assert "`imulab plots`" in text
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # real processes: the unchanged archive, the reprocess lock
 # ---------------------------------------------------------------------------------------------------------------
@@ -198,6 +218,35 @@ def test_unchanged_archive_answers_without_importing_dagster(workspace):
         return out[out.index("outputs under"):out.index("\nsummary:")]
 
     assert outputs(text) == outputs(first)
+
+
+@pytest.mark.slow
+def test_certificates_render_on_demand_and_verify(workspace):
+    """``imulab run`` renders no certificate (issue 10 item 8); ``imulab certificates`` renders one per record of
+    the current record versions, launching only the devices' certificate stage; ``imulab verify`` accepts one;
+    afterwards both commands answer on the unchanged archive without launching anything."""
+    archive, data = workspace / "archive", workspace / "data"
+    if not (data / "store" / "ARCHIVE").is_file():
+        rc, out = _finish(_imulab("run", "--archive", archive, "--data-dir", data))
+        assert rc == 0, out
+    store = data / "store"
+    assert not (store / "certificate").exists() and not list((store / "calibration_record").rglob("*.html"))
+    rc, out = _finish(_imulab("certificates", "--archive", archive, "--data-dir", data))
+    assert rc == 0, out
+    assert "ok   calibrate_devices run" in out and "calibrate_captures run" not in out, out
+    records = [p for p in (store / "calibration_record").glob("*/*/*.json") if p.name != "meta.json"
+               and (p.parent.parent / "CURRENT").read_text().strip() == p.parent.name]
+    certs = sorted((store / "certificate").glob("*/*/*.html"))
+    assert len(certs) == len(records) > 0 and "certificates: " in out and "not rendered" not in out
+    from click.testing import CliRunner
+
+    from imulab.cli import main
+
+    res = CliRunner().invoke(main, ["verify", str(certs[0]), "--shallow"], catch_exceptions=False)
+    assert res.exit_code == 0 and "ok   certificate shows exactly its record" in res.output, res.output
+    for cmd in ("run", "certificates"):
+        rc, again = _finish(_imulab(cmd, "--archive", archive, "--data-dir", data))
+        assert rc == 0 and "nothing launched" in again and "certificates: " in again, again
 
 
 @pytest.mark.slow

@@ -1,9 +1,9 @@
-"""Check of the records stage (``assets_lib.stages.records``): a blocking check verifies every device's record
-chain after every materialization."""
+"""Checks of the records stages (``assets_lib.stages.records``): a blocking check verifies every device's record
+chain after every materialization; another checks that every certificate shows exactly its current record."""
 
 import dagster as dg
 
-from assets_lib.records import chain_problems, load_records_dir
+from assets_lib.records import certificate_problems, chain_problems, load_records_dir
 from pipelines.partitions import devices
 from pipelines.resources import ParquetStore
 
@@ -39,4 +39,34 @@ def record_chain_intact(context: dg.AssetCheckExecutionContext, store: ParquetSt
     )
 
 
-CHECKS = [record_chain_intact]
+@dg.asset_check(asset="certificate", name="certificates_show_their_records", partitions_def=devices,
+                description="Every certificate of the device's current certificate version was rendered from the "
+                            "current record version, embeds its record unedited and shows exactly its values "
+                            "(assets_lib.records.certificate.certificate_problems).")
+def certificates_show_their_records(context: dg.AssetCheckExecutionContext, store: ParquetStore
+                                    ) -> dg.AssetCheckResult:
+    st = store.store
+    problems, checked = [], 0
+    for dev in context.partition_keys:
+        version = st.current_version("certificate", dev)
+        if version is None:
+            continue
+        rec_version = st.current_version("calibration_record", dev)
+        if st.read_meta("certificate", dev, version).get("record_version") != rec_version:
+            problems.append(f"{dev}: certificates rendered from another record version than the current one")
+        records, _ = load_records_dir(st.version_dir("calibration_record", dev, rec_version))
+        for page in sorted(st.version_dir("certificate", dev, version).glob("*.html")):
+            rec, probs = certificate_problems(page.read_text(encoding="utf-8"))
+            if rec is not None and records.get(page.stem, {}).get("record_sha256") != rec.get("record_sha256"):
+                probs = [*probs, "its record is not the stored record of the run"]
+            problems += [f"{dev}/{page.name}: {x}" for x in probs]
+            checked += 1
+    return dg.AssetCheckResult(
+        passed=not problems,
+        severity=dg.AssetCheckSeverity.ERROR,
+        metadata={"certificates_checked": checked, "problems": "\n".join(problems) or "none"},
+        description="; ".join(problems)[:2000] or None,
+    )
+
+
+CHECKS = [record_chain_intact, certificates_show_their_records]
