@@ -223,7 +223,8 @@ def _e(v) -> str:
     return html.escape("" if v is None else str(v))
 
 
-def certificate_html(record: dict, plots: dict[str, bytes] | None = None, device_calibration=None) -> str:
+def certificate_html(record: dict, plots: dict[str, bytes] | None = None, device_calibration=None,
+                     navigation=None) -> str:
     """Human-readable certificate of one record: validity banner, record id and hash, conditions, coefficient
     table with standard and expanded (k = 2) uncertainties in lab and SI units rounded to the uncertainty, noise
     terms with intervals, raw file hashes, software and stage versions, the residual / Allan plots embedded as
@@ -231,13 +232,15 @@ def certificate_html(record: dict, plots: dict[str, bytes] | None = None, device
 
     With ``device_calibration`` (``assets_lib.navigation.budget.certificate_calibration``: the device's
     calibration at the record's start) also what it buys in navigation: a small table and plot, with the device
-    calibration embedded as hashed JSON so that ``imulab verify`` recomputes every printed budget value."""
+    calibration embedded as hashed JSON so that ``imulab verify`` recomputes every printed budget value.
+    ``navigation``: ``navigation_cells(device_calibration)`` when the caller computed it already (the check
+    renders the page again and must not integrate the budget twice)."""
     c = record["content"]
     cells = certified_cells(record)
     plots = dict(plots or {})
     nav_png = plots.pop(NAV_PLOT, None)
     if device_calibration is not None:
-        nav_cells, nav_labels, budget = navigation_cells(device_calibration)
+        nav_cells, nav_labels, budget = navigation or navigation_cells(device_calibration)
         cells.update(nav_cells)
         if nav_png is None:
             from assets_lib.navigation.budget import budget_plot_png
@@ -424,12 +427,13 @@ def certificate_problems(text: str) -> tuple[dict | None, list[str]]:
         want = certified_cells(rec)
     except (KeyError, TypeError) as e:
         return rec, problems + [f"certificate: the embedded record is incomplete ({type(e).__name__}: {e})"]
-    device_cal = None
+    device_cal = nav = None
     if cert.device_calibration is not None:
         device_cal, more = device_calibration_problems(rec, cert.device_calibration)
         problems += more
         if device_cal is not None:
-            want.update(navigation_cells(device_cal)[0])
+            nav = navigation_cells(device_cal)
+            want.update(nav[0])
     for key in sorted(set(want) | set(cert.cells), key=str):
         shown = cert.cells.get(key, [])
         if key not in want:
@@ -438,7 +442,7 @@ def certificate_problems(text: str) -> tuple[dict | None, list[str]]:
             problems.append(f"certificate: {key} (record: {want[key]!r}) is not shown")
         elif len(shown) > 1 or shown[0] != want[key]:
             problems.append(f"certificate: {key} shows {' / '.join(map(repr, shown))}, the record gives {want[key]!r}")
-    if not problems and cert.format == CERTIFICATE_FORMAT and certificate_html(rec, cert.plots, device_cal) != text:
+    if not problems and cert.format == CERTIFICATE_FORMAT and certificate_html(rec, cert.plots, device_cal, nav) != text:
         problems.append("certificate: the page differs from the rendering of its record outside the value cells "
                         "(text added or changed)")
     if cert.format != CERTIFICATE_FORMAT:
