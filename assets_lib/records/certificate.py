@@ -442,7 +442,8 @@ def certificate_problems(text: str) -> tuple[dict | None, list[str]]:
             problems.append(f"certificate: {key} (record: {want[key]!r}) is not shown")
         elif len(shown) > 1 or shown[0] != want[key]:
             problems.append(f"certificate: {key} shows {' / '.join(map(repr, shown))}, the record gives {want[key]!r}")
-    if not problems and cert.format == CERTIFICATE_FORMAT and certificate_html(rec, cert.plots, device_cal, nav) != text:
+    if not problems and cert.format == CERTIFICATE_FORMAT \
+            and certificate_html(rec, cert.plots, device_cal, nav) != text:
         problems.append("certificate: the page differs from the rendering of its record outside the value cells "
                         "(text added or changed)")
     if cert.format != CERTIFICATE_FORMAT:

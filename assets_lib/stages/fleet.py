@@ -1,7 +1,7 @@
 """Stage ``fleet_drift``: every device's calibration coefficients over time, with control limits from the device's
-repeatability, drift and abrupt-shift flags (assets_lib.fleet.drift) and a fleet summary; one control chart per coefficient family is drawn on
-demand (assets_lib.stages.figures). Run times come from ``ingested_run`` (the manifest's start time), so it is an upstream too;
-without coefficients the stage produces no output."""
+repeatability, drift and abrupt-shift flags (assets_lib.fleet.drift) and a fleet summary; one control chart per
+coefficient family is drawn on demand (assets_lib.stages.figures). Run times come from ``ingested_run`` (the
+manifest's start time), so it is an upstream too; without coefficients the stage produces no output."""
 
 from __future__ import annotations
 

@@ -90,7 +90,8 @@ def certificate(device: str, inputs) -> StageOutput | None:
         cal = certificate_calibration(records, rid)
         files[f"{rid}.html"] = certificate_html(rec, plots, cal).encode("utf-8")
         rows.append({"run_id": rid, "record_sha256": rec["record_sha256"], "file": f"{rid}.html",
-                     "status": rec["content"].get("status"), "n_plots": len(plots), "navigation_budget": cal is not None})
+                     "status": rec["content"].get("status"), "n_plots": len(plots),
+                     "navigation_budget": cal is not None})
     return StageOutput(
         tables={"certificates": pd.DataFrame(rows, columns=CERTIFICATE_COLUMNS)},
         meta={"record_version": inputs.versions[f"calibration_record/{device}"], "n_certificates": len(rows)},
