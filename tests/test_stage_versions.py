@@ -101,4 +101,4 @@ def test_import_scan_walks_statements_like_ast_walk():
         full = [ast.dump(n) for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
         fast = [ast.dump(n) for n in _statements(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
         assert sorted(fast) == sorted(full)
-    assert len([n for n in _statements(trees[0]) if isinstance(n, (ast.Import, ast.ImportFrom))]) == 12
+    assert len([n for n in _statements(trees[0]) if isinstance(n, (ast.Import, ast.ImportFrom))]) == 10
