@@ -7,7 +7,6 @@ Every violation raises :class:`RawDataError` naming the file, the row/column or 
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
 from raw_schemas.errors import RawDataError
+from raw_schemas.hashcache import hash_folder_files, sha256_file  # noqa: F401 - sha256_file re-exported
 from raw_schemas.manifest import IMU_CHANNELS, Manifest, load_manifest
 from raw_schemas.tables import (
     CANONICAL_IMU_SCHEMA,
@@ -51,15 +51,6 @@ class IngestedRun:
     @property
     def partition_key(self) -> str:
         return self.manifest.partition_key
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    """Content hash of a file, streamed."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while b := f.read(chunk):
-            h.update(b)
-    return h.hexdigest()
 
 
 def is_complete(run_dir: Path) -> bool:
@@ -301,7 +292,7 @@ def ingest_run(run_dir: str | Path) -> IngestedRun:
     if not is_complete(run_dir):
         raise RawDataError(COMPLETE_MARKER, f"in {run_dir}", "the completion marker written last by the capture job",
                            "none (run still being captured?)")
-    hashes = {p.name: sha256_file(p) for p in sorted(run_dir.iterdir()) if p.is_file()}
+    hashes = hash_folder_files(run_dir)  # remembered per file state (raw_schemas.hashcache)
     manifest = load_manifest(run_dir / MANIFEST_FILE)
     if manifest.device.id != run_dir.parent.name or manifest.run_id != run_dir.name:
         raise RawDataError(MANIFEST_FILE, "fields 'device.id'/'run_id'",

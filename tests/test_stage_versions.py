@@ -82,3 +82,23 @@ def test_empty_module_leaves_reprocess_with_nothing_to_do(tmp_path):
     # the stages of the module that imports rate_fit (assets_lib/stages/calibration.py) and their downstreams
     assert rc == 0 and "gyro_rate_fit: 1 stale" in out and "plateaus: 2 stale" in out, out
     assert "ingested_run:" not in out and "code version 2+src" not in out, out
+
+
+def test_import_scan_walks_statements_like_ast_walk():
+    """The source digests' import scan visits statements only (``sources._statements``); it must find exactly the
+    imports a full ``ast.walk`` finds, in every project module (function bodies, try/except, if, with, match)."""
+    import ast
+
+    from assets_lib.stages.sources import PROJECT_PACKAGES, ROOT, _statements
+
+    sample = "import a\ntry:\n    import b\nexcept ImportError:\n    from c import d\nelse:\n    import e\nfinally:\n" \
+             "    import f\ndef g():\n    if x:\n        import h\n    with y:\n        from . import i\n" \
+             "class K:\n    def m(self):\n        for _ in z:\n            import j\n        while w:\n            pass\n" \
+             "        else:\n            import k\nmatch v:\n    case 1:\n        import l\n"
+    trees = [ast.parse(sample)] + [ast.parse(f.read_text()) for pkg in PROJECT_PACKAGES
+                                   for f in sorted((ROOT / pkg).rglob("*.py"))]
+    for tree in trees:
+        full = [ast.dump(n) for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+        fast = [ast.dump(n) for n in _statements(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+        assert sorted(fast) == sorted(full)
+    assert len([n for n in _statements(trees[0]) if isinstance(n, (ast.Import, ast.ImportFrom))]) == 10

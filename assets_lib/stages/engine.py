@@ -28,7 +28,7 @@ from assets_lib.store import (
     version_id,
 )
 from assets_lib.store.versioned import REJECTED
-from raw_schemas.readers import sha256_file
+from raw_schemas.hashcache import hash_folder_files
 
 #: the root stage whose stored metadata names a run's test kind
 KIND_SOURCE = "ingested_run"
@@ -118,8 +118,9 @@ class StageGraph:
 # Versions
 # ---------------------------------------------------------------------------------------------------------------
 def raw_versions(run_dir: Path) -> dict[str, str]:
-    """sha256 of every file of a raw run folder: the root of every version chain."""
-    return {f"raw/{p.name}": sha256_file(p) for p in sorted(Path(run_dir).iterdir()) if p.is_file()}
+    """sha256 of every file of a raw run folder: the root of every version chain (each file read once per process
+    while its state is unchanged: ``raw_schemas.hashcache``)."""
+    return {f"raw/{name}": digest for name, digest in hash_folder_files(run_dir).items()}
 
 
 def upstream_keys(graph: StageGraph, spec: StageSpec, up: str, key: str, partitions_of: Callable[[str], Iterable[str]]

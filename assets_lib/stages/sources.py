@@ -39,7 +39,7 @@ def _imported_cached(name: str, path_s: str, mtime_ns: int, size: int) -> frozen
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
     out: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in _statements(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
             out |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom):
@@ -51,6 +51,24 @@ def _imported_cached(name: str, path_s: str, mtime_ns: int, size: int) -> frozen
             out.add(mod)
             out |= {f"{mod}.{a.name}" for a in node.names}  # ``from pkg import module``
     return frozenset(m for m in out if m.split(".")[0] in PROJECT_PACKAGES)
+
+
+#: fields of a node that hold statements (bodies of modules, functions, classes, if/for/while/with/try and match
+#: cases, except handlers): an import is a statement, so walking statements finds every one that ``ast.walk``
+#: finds, without visiting the expressions (most of a module's nodes)
+_BODY_FIELDS = ("body", "orelse", "finalbody", "handlers", "cases")
+
+
+def _statements(tree: ast.AST):
+    """Every statement node of ``tree`` at any depth (plus except handlers and match cases, which hold bodies)."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        for name in _BODY_FIELDS:
+            children = getattr(node, name, None)
+            if isinstance(children, list):
+                todo += [c for c in children if isinstance(c, ast.AST)]
 
 
 def _with_parents(name: str) -> list[str]:
