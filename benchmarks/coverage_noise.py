@@ -39,8 +39,12 @@ markov_q = sqrt(theta_M) / T_c with theta_M = (q_c T_c)^2 = 2 sigma^2 T_c, i.e. 
 output over power cycles, sqrt(sb^2 + (ss x)^2) (bias and scale-factor turn-on spreads of
 ``DeviceTruth.for_power_cycle``; x the axis' input: earth rate or gravity).
 
-``markov_tc`` is scored with its profile-likelihood interval (the T_c grid points whose GLS chi2 lies within
-chi2_1(0.95) of the minimum). Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
+``markov_tc`` is scored with its profile-likelihood interval (the T_c set whose GLS chi2 lies within chi2_1(0.95)
+of the minimum, edges interpolated between grid points) when the Markov term is identified; when ``markov_q`` is
+a bound the fit prints T_c as a bound too (the profile set's upper end; no point value) and it is scored as one.
+Which terms are bounds is the fit's decision (``assets_lib.noise.identification``): a term whose profile-likelihood
+interval, every other term free, reaches zero is not identified by the record (collinear B, K and R at the
+long-tau end of a short record) and is printed as an upper bound, tested at its own AVAR covariance. Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
 printed as a point; no benchmark plan injects a sinusoid),
 the slope reads (method 'slope': one-point chi-square intervals of the curve, known to be biased when terms
 overlap; benchmarks/mc_noise_id.py measures their bias), N and B repeatability (relative spread of estimates whose

@@ -244,6 +244,11 @@ def trial(args: tuple) -> list[dict]:
     return rows
 
 
+#: default --noise-every: one trial in ten also runs the noise scoring (~8 s of static runs and Allan fits, as much as
+#: the calibration trial itself; every trial would halve the calibration trials a time budget buys)
+NOISE_EVERY = 10
+
+
 def _noise_module():
     """benchmarks/coverage_noise.py (the noise part of issue 15), or None while it does not exist."""
     try:
@@ -446,7 +451,7 @@ def markdown(tabs: dict, meta: dict) -> str:
 
 
 def run(seed: int, trials: int, workers: int = 1, quick: bool = False, budget_s: float | None = None,
-        noise_every: int = 1) -> pd.DataFrame:
+        noise_every: int = NOISE_EVERY) -> pd.DataFrame:
     """Trials 0..trials-1; with ``budget_s`` no trial starts after that many seconds (the trials done are scored:
     a shared machine's honest partial run instead of a killed one)."""
     t0 = time.time()
@@ -491,8 +496,10 @@ def main(argv=None):
     ap.add_argument("--records", action="store_true", help="also write every estimate to <out>.records.csv")
     ap.add_argument("--budget-s", type=float, default=None,
                     help="start no trial after this many seconds; the trials done are scored and reported")
-    ap.add_argument("--noise-every", type=int, default=1,
-                    help="score the noise intervals (benchmarks/coverage_noise.py) on every N-th trial; 0: never")
+    ap.add_argument("--noise-every", type=int, default=NOISE_EVERY,
+                    help="score the noise intervals (benchmarks/coverage_noise.py) on every N-th trial; 0: never "
+                         f"(default {NOISE_EVERY}: a noise trial costs about as much as a calibration trial, and the "
+                         "noise families have their own acceptance run, benchmarks/coverage_noise.py)")
     args = ap.parse_args(argv)
     t0 = time.time()
     noise_on = args.noise_every > 0 and _noise_module() is not None
@@ -504,7 +511,7 @@ def main(argv=None):
     cmd = (f"python benchmarks/mc_calibration_coverage.py --seed {args.seed} --trials {args.trials} "
            f"--workers {args.workers} --plans {args.plans}"
            + (f" --budget-s {args.budget_s:g}" if args.budget_s is not None else "")
-           + (f" --noise-every {args.noise_every}" if args.noise_every != 1 else ""))
+           + (f" --noise-every {args.noise_every}" if args.noise_every != NOISE_EVERY else ""))
     meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "plans": args.plans,
             "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": noise_on}
     text = markdown(tabs, meta)

@@ -107,6 +107,37 @@ def test_markov_term_recovered_on_model_curve():
     assert fit.chi2 < plain.chi2
 
 
+def test_profile_limits_are_wald_for_separated_terms_and_reach_zero_for_collinear_ones():
+    """[VENZON1988] profile interval on the GLS chi2: for terms the design separates (both well inside their
+    intervals) it is the Wald interval theta +- z sd; for two terms with the same tau shape (what B, K and R become
+    over the last octaves of a short record) neither is identified, so each profile set reaches zero (a bound)."""
+    tau = np.geomspace(0.01, 100.0, 20)
+    X = ni.basis(tau, ("N", "K"))
+    theta = np.array([1e-6, 3e-8])
+    a = X @ theta
+    V = np.diag((0.05 * a) ** 2)
+    lo, hi, _ = ni._profile_limits(X, a, V, 1.959964**2)
+    sd = np.sqrt(np.diag(np.linalg.inv(X.T @ np.linalg.solve(V, X))))
+    assert np.all(theta - 1.96 * sd > 0)
+    np.testing.assert_allclose(lo, theta - 1.959964 * sd, rtol=1e-4)
+    np.testing.assert_allclose(hi, theta + 1.959964 * sd, rtol=1e-4)
+    Xc = np.column_stack([X[:, 1], 2.0 * X[:, 1], X[:, 0]])  # K twice: no record can split it
+    lo_c, hi_c, _ = ni._profile_limits(Xc, a, V, 1.959964**2)
+    assert lo_c[0] == 0.0 and lo_c[1] == 0.0 and lo_c[2] > 0
+    assert hi_c[0] == pytest.approx(theta[1] + 1.959964 * sd[1], rel=1e-3)  # all of K's power in column 0
+
+
+def test_unidentified_markov_term_prints_q_and_tc_as_bounds():
+    """White noise only: the Markov term is not in the record, so markov_q and its T_c are printed as bounds (no
+    point value), never as a T_c at the edge of the searched grid with an interval."""
+    rng = np.random.default_rng(5)
+    y = 1e-3 * rng.standard_normal(60_000)
+    fit = ni.fit_noise(al.oadev(y, 100.0, channel="gyro_x"), markov=True)
+    q, tc = fit.parameter("markov_q"), fit.parameter("markov_tc")
+    assert q.is_upper_bound and tc.is_upper_bound
+    assert math.isnan(tc.value) and tc.ci_lo == 0.0 and tc.ci_hi == pytest.approx(fit.tau_s.max() / 2, rel=1e-9)
+
+
 def test_tables_and_plot():
     res = _model_result(AllanParams(n=2e-5, b=1e-5, k=1e-6))
     fits = {"gyro_x": ni.fit_noise(res)}
