@@ -255,15 +255,17 @@ def test_run_mean_wander_is_not_scaled_by_the_residual_scatter():
 
 
 def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
-    """B = 0 from the run's Allan fit means "not seen within the plateaus", not "absent": tau^2 is taken at its
-    bound sem^2 / (2 ln2), so the bias keeps a run-mean wander (REML from a few contrasts often read 0)."""
+    """B = 0 from the run's Allan fit means "not seen within the plateaus", not "absent": with too few residual
+    dof for REML (here 2: a 6-position-like design) tau^2 is taken at its bound sem^2 / (2 ln2), so the bias keeps
+    a run-mean wander; with enough dof REML estimates it from the contrasts."""
     from assets_lib.calibration.fit_core import FLICKER_UNDETECTED, FLICKER_WHITE, fit_linear, flicker_prior_tau2
 
     assert flicker_prior_tau2(0.0) == FLICKER_UNDETECTED and flicker_prior_tau2(None) is None
     assert flicker_prior_tau2(2e-4) == pytest.approx(4e-8 / np.pi)
     X, t_mid, t_len, sem = _flicker_design()
-    y = X @ np.array([0.05, 1.001, 1e-4]) + 2e-4 * np.random.default_rng(1).standard_normal(8)
+    X, t_mid, t_len, sem = X[:5], t_mid[:5], t_len[:5], sem[:5]
+    y = X @ np.array([0.05, 1.001, 1e-4]) + 2e-4 * np.random.default_rng(1).standard_normal(5)
     fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
                      flicker_tau2=flicker_prior_tau2(0.0))
-    assert fit.flicker_tau2 == pytest.approx(np.median(sem**2) / FLICKER_WHITE)
+    assert fit.dof == 2 and fit.flicker_tau2 == pytest.approx(np.median(sem**2) / FLICKER_WHITE)
     assert fit.cov[0, 0] >= FLICKER_WHITE * fit.flicker_tau2

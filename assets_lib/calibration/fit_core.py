@@ -387,11 +387,16 @@ def fit_linear(
     # REML needs a few residual dof; a 1/f level given by the run's Allan analysis applies to any schedule
     # (a 6-position plan has 2 dof: without it the biases lost the 1/f wander, coverage 0.84, z sd 2.0)
     if flicker_tau2 is not None and flicker_tau2 == FLICKER_UNDETECTED:
-        # the Allan fit within the plateaus saw no 1/f floor: it lies below the plateau variance, sem^2 >= 2 ln2
-        # tau^2 (the floor is part of a window mean's Allan variance), so tau^2 is taken at that bound. REML from
-        # a few plateau contrasts read it as 0 in half of those runs (tactical accelerometer, 1/f below white
-        # noise up to 15 s, B undetected in 21 % of runs: bias z sd 1.55, coverage 0.84)
-        flicker_tau2 = float(np.median(sig[idx] ** 2)) / FLICKER_WHITE if (sig is not None and len(idx)) else None
+        # the Allan fit within the plateaus saw no 1/f floor. With >= 3 residual dof the plateaus' contrasts
+        # estimate it (REML). With fewer (a 6-position plan) nothing does, and it is not zero: it lies below the
+        # plateau variance, sem^2 >= 2 ln2 tau^2 (the floor is part of a window mean's Allan variance), so tau^2
+        # is taken at that bound (tactical accelerometer on the 6-position plan, B undetected in 21 % of runs:
+        # bias z sd 2.0, coverage 0.79 with tau^2 = 0). The bound for every dof over-covered gyros whose 1/f
+        # floor lies far below their white noise (navigation rate-fit bias z sd 0.37).
+        if dof >= 3 or sig is None or not len(idx):
+            flicker_tau2 = None
+        else:
+            flicker_tau2 = float(np.median(sig[idx] ** 2)) / FLICKER_WHITE
     prior = flicker_tau2 is not None and flicker_tau2 > 0
     if times is not None and sig is not None and k and (dof >= 3 or prior):
         t_mid, t_len = (np.asarray(v, float) for v in times)
@@ -525,7 +530,8 @@ def flicker_prior_tau2(b: float | None) -> float | None:
     An undetected 1/f level is not a zero one: fixing tau^2 = 0 when the Allan fit put B at zero dropped the
     bias-instability wander from the biases' uncertainty (tactical accelerometer bias coverage 0.68, z sd 2.2 in
     the full-chain Monte Carlo; 0.93 with this rule). B = 0 (looked for, not seen within the plateaus) returns
-    :data:`FLICKER_UNDETECTED`: :func:`fit_linear` then bounds tau^2 by the plateau sems (see there).
+    :data:`FLICKER_UNDETECTED`: :func:`fit_linear` then estimates tau^2 by REML, or with too few residual
+    dof for that bounds it by the plateau sems (see there).
     """
     if b is None or not np.isfinite(b) or b < 0:
         return None
