@@ -59,7 +59,7 @@ Not scored here (stated, so no printed interval passes unchecked):
   on linear sensors only;
 - the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py.
 
-    python benchmarks/mc_calibration_coverage.py --seed 2026 --trials 2000 --workers 2 --records
+    python benchmarks/mc_calibration_coverage.py --seed 2027 --trials 2000 --workers 2 --records --noise-every 0 --budget-s 2700
 """
 
 from __future__ import annotations

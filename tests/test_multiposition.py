@@ -219,3 +219,53 @@ def test_wild_position_is_excluded():
     assert z.n_used == 23 and fit.axis("x").fit.used.all()
     for name, v, s, ob, truth in _accel_checks(fit, t):
         assert abs(v - truth) < Z_FAMILY * s, name
+
+
+def _flicker_design():
+    g = 9.8
+    f = np.array([g, -g, 0, 0, 0, 0, g, -g])
+    X = np.column_stack([np.ones(8), f, f**2])
+    return X, 30.0 + 60.0 * np.arange(8), np.full(8, 20.0), np.full(8, 2e-4)
+
+
+def test_run_mean_wander_is_not_scaled_by_the_residual_scatter():
+    """Sigma's constant part 2 ln2 tau^2 11^T (the run mean's 1/f wander) moves only the bias, by exactly that
+    variance, and the residuals (contrasts) say nothing about it: the Birge scaling applies to the rest. Bias
+    z-scores of a 6-position-like design with the 1/f level given stay standard normal."""
+    from assets_lib.calibration.fit_core import FLICKER_WHITE, fit_linear, flicker_covariance, flicker_gls
+
+    X, t_mid, t_len, sem = _flicker_design()
+    tau2 = (2e-4) ** 2 / np.pi
+    L = np.linalg.cholesky(flicker_covariance(sem, t_mid, t_len, tau2))
+    beta = np.array([0.05, 1.001, 1e-4])
+    rng = np.random.default_rng(5)
+    z = []
+    for r in range(1500):
+        y = X @ beta + L @ rng.standard_normal(8)
+        fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                         flicker_tau2=tau2)
+        if r == 0:  # the decomposition itself
+            C0 = flicker_gls(X, y, sem, t_mid, t_len, tau2=tau2)[2]
+            c = FLICKER_WHITE * tau2
+            assert fit.scale != pytest.approx(1.0, abs=0.05)
+            assert fit.cov[0, 0] == pytest.approx((C0[0, 0] - c) * fit.scale + c, rel=1e-9)
+            np.testing.assert_allclose(fit.cov[1:, 1:], C0[1:, 1:] * fit.scale, rtol=1e-9)
+        z.append((fit.value[0] - beta[0]) / np.sqrt(fit.cov[0, 0]))
+    assert 0.93 < np.std(z) < 1.07 and 0.93 < np.mean(np.abs(z) < 1.96) < 0.97
+
+
+def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
+    """B = 0 from the run's Allan fit means "not seen within the plateaus", not "absent": with too few residual
+    dof for REML (here 2: a 6-position-like design) tau^2 is taken at its bound sem^2 / (2 ln2), so the bias keeps
+    a run-mean wander; with enough dof REML estimates it from the contrasts."""
+    from assets_lib.calibration.fit_core import FLICKER_UNDETECTED, FLICKER_WHITE, fit_linear, flicker_prior_tau2
+
+    assert flicker_prior_tau2(0.0) == FLICKER_UNDETECTED and flicker_prior_tau2(None) is None
+    assert flicker_prior_tau2(2e-4) == pytest.approx(4e-8 / np.pi)
+    X, t_mid, t_len, sem = _flicker_design()
+    X, t_mid, t_len, sem = X[:5], t_mid[:5], t_len[:5], sem[:5]
+    y = X @ np.array([0.05, 1.001, 1e-4]) + 2e-4 * np.random.default_rng(1).standard_normal(5)
+    fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                     flicker_tau2=flicker_prior_tau2(0.0))
+    assert fit.dof == 2 and fit.flicker_tau2 == pytest.approx(np.median(sem**2) / FLICKER_WHITE)
+    assert fit.cov[0, 0] >= FLICKER_WHITE * fit.flicker_tau2

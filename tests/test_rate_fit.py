@@ -297,3 +297,24 @@ def test_one_lab_unit_table_and_typed_coefficient():
     assert math.isclose(ppm.value, 10.0) and math.isclose(ppm.stderr, 2.0) and math.isclose(ppm.ci_low, 10.0 - 5.0)
     u = Coefficient(3.0, 1.0, "rad", observable=False)
     assert math.isnan(u.value) and math.isnan(u.stderr) and not u.observable
+
+
+def test_flat_top_across_a_gap_in_the_sweep_is_excluded():
+    """A railed plateau (every sample at the rail: sem ~ 0) next to a gap in the sweep (the +250 deg/s plateau
+    flagged upstream) has an incremental gain just above one half; it is still saturated (coverage benchmark
+    trial 2026/737: fitted, it read K+ = 0.62, z = -148)."""
+    from assets_lib.calibration.saturation import detect_saturation
+
+    rng = np.random.default_rng(737)
+    w = np.radians([400.0, 100, 80, 60, 40, 20, 10, 5, 1, 0, -1, -5, -10, -20, -40, -60, -80, -100, -250, -400])
+    rail = np.radians(250.0)
+    sem = np.full(len(w), 3.5e-5)
+    y = 1.005 * w - 0.0226 + sem * rng.standard_normal(len(w))
+    clipped = np.abs(1.005 * w - 0.0226) > rail
+    y[clipped] = np.sign(w[clipped]) * rail
+    sem[clipped] = 1e-17
+    out = detect_saturation(w, y, sem)
+    assert set(out) == set(np.flatnonzero(clipped))
+    assert "flat top" in out[0]
+    # without the flat-top rule the gain test alone misses it: incremental gain 0.50x across the gap
+    assert 0 not in detect_saturation(w, y, sem, flat_fraction=0.0)

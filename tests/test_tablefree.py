@@ -258,3 +258,33 @@ def test_stage_check_names_the_failing_figure():
     assert "static |f| - g RMS 0.05" in fit_problem(bad)
     unobs = {"gravity_mps2": 9.81, "diagnostics": {"static_norm_rms_mps2": 0.001, "unobservable": ["k_z"]}}
     assert "k_z" in fit_problem(unobs)
+
+
+def test_ferraris_g_sensitivity_row_is_k_ga_at_the_output():
+    """The Ferraris gyro g-sensitivity row is imucal's K_ga in rad/s per m/s^2 (design.md: y = K(I+E) w + b + G f,
+    G added at the output like the bias; imucal: u_g = K_g R_g w + K_ga a + b_g), so the table's G and bias undo
+    imucal's model for a gyro whose scale factor is far from 1 (the row was K_ga / K_g: off by the scale factor)."""
+    from assets_lib.calibration.ferraris import FerrarisFit
+    from assets_lib.calibration.tablefree_session import TableFreeResult, coefficient_table
+
+    rng = np.random.default_rng(15)
+    K_g = np.diag([1.3, 0.8, 1.1])
+    R_g = np.eye(3) + 0.01 * rng.standard_normal((3, 3)) * (1 - np.eye(3))
+    K_ga = 0.05 * rng.standard_normal((3, 3))  # deg/s per m/s^2
+    b_g = rng.standard_normal(3)  # deg/s
+    z = np.zeros((3, 3))
+    se = {k: np.full(s_, 1e-3) for k, s_ in (("K_a", (3, 3)), ("R_a", (3, 3)), ("b_a", (3,)), ("K_g", (3, 3)),
+                                              ("R_g", (3, 3)), ("K_ga", (3, 3)), ("b_g", (3,)))}
+    fit = FerrarisFit(np.eye(3), np.eye(3), np.zeros(3), K_g, R_g, K_ga, b_g, se, 9.81, -360.0, "m/s^2", "deg/s",
+                      "m/s^2", "deg/s")
+    t = coefficient_table(TableFreeResult("ferraris", fit.coefficients(), None, fit, fit), "d", "r", 100)
+    g = t[(t.sensor == "gyro")].set_index(["axis", "coefficient"])["value"]
+    G = np.array([[g[(a, f"g_sensitivity_{b}")] for b in "xyz"] for a in "xyz"])  # rad/s per m/s^2
+    b = np.array([g[(a, "bias")] for a in "xyz"])  # rad/s
+    w_dps, acc = 100 * rng.standard_normal((50, 3)), 9.81 * rng.standard_normal((50, 3))
+    u = w_dps @ (K_g @ R_g).T + acc @ K_ga.T + b_g  # imucal's forward model, deg/s
+    # the output-level terms of the table leave K_g R_g w, which imucal's own calibrate inverts to w
+    left = np.radians(u) - b - acc @ G.T
+    np.testing.assert_allclose(left, np.radians(w_dps @ (K_g @ R_g).T), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fit.calibrate_gyr(u, acc), w_dps, rtol=1e-10, atol=1e-10)
+    assert not np.allclose(G, np.radians(K_ga / np.diag(K_g)[:, None]))  # the old row was not this

@@ -383,8 +383,20 @@ def fit_linear(
     ident, obs, idx, w, x, C0, h = sol.ident, sol.observable, sol.rows, sol.weights, sol.x, sol.cov_unscaled, sol.leverage
     chi2, k, dof = sol.chi2, sol.n_observable, sol.dof
     tau2 = 0.0
+    C_common = None  # the run mean's 1/f wander on the constant column (not scaled by the residual chi-square)
     # REML needs a few residual dof; a 1/f level given by the run's Allan analysis applies to any schedule
     # (a 6-position plan has 2 dof: without it the biases lost the 1/f wander, coverage 0.84, z sd 2.0)
+    if flicker_tau2 is not None and flicker_tau2 == FLICKER_UNDETECTED:
+        # the Allan fit within the plateaus saw no 1/f floor. With >= 3 residual dof the plateaus' contrasts
+        # estimate it (REML). With fewer (a 6-position plan) nothing does, and it is not zero: it lies below the
+        # plateau variance, sem^2 >= 2 ln2 tau^2 (the floor is part of a window mean's Allan variance), so tau^2
+        # is taken at that bound (tactical accelerometer on the 6-position plan, B undetected in 21 % of runs:
+        # bias z sd 2.0, coverage 0.79 with tau^2 = 0). The bound for every dof over-covered gyros whose 1/f
+        # floor lies far below their white noise (navigation rate-fit bias z sd 0.37).
+        if dof >= 3 or sig is None or not len(idx):
+            flicker_tau2 = None
+        else:
+            flicker_tau2 = float(np.median(sig[idx] ** 2)) / FLICKER_WHITE
     prior = flicker_tau2 is not None and flicker_tau2 > 0
     if times is not None and sig is not None and k and (dof >= 3 or prior):
         t_mid, t_len = (np.asarray(v, float) for v in times)
@@ -393,6 +405,15 @@ def fit_linear(
             tau2, gx, gC, gchi2 = flicker_gls(X, y[idx], sig[idx], t_mid[idx], t_len[idx], tau2=flicker_tau2)
             if tau2 > 0:
                 x, C0, chi2 = gx, gC, gchi2
+                # Sigma's constant part c 11^T (c = 2 ln2 tau^2, the run mean's wander) moves only the constant
+                # column's estimate (1 lies in the design's column space: Rao's structure [RAO1967]), by exactly c; the
+                # residuals, contrasts between plateaus, carry no information about it, so the scatter's Birge
+                # scaling below applies to the rest only (scaling the whole covariance by chi2/dof < 1 shrank the
+                # accelerometer bias intervals: z sd 1.18, coverage 0.92 in the full-chain Monte Carlo)
+                c = int(np.flatnonzero(np.all(X == X[0], axis=0) & (X[0] != 0))[0])
+                e = np.zeros(X.shape[1])
+                e[c] = 1.0 / X[0, c]
+                C_common = FLICKER_WHITE * tau2 * np.outer(e, e)
     if outlier_test and n_out >= n_out_max and n_out > 0:
         warnings.append(
             f"outlier exclusion stopped at the limit of {n_out_max} rows ({max_exclusion_fraction:.0%}); "
@@ -419,7 +440,7 @@ def fit_linear(
     oi = np.flatnonzero(obs)
     if k:
         value[oi] = x
-        cov[np.ix_(oi, oi)] = C0 * scale
+        cov[np.ix_(oi, oi)] = C0 * scale if C_common is None else (C0 - C_common) * scale + C_common
     fitted = A[:, oi] @ x if k else np.zeros(n)
     resid = y - fitted
     # standardized residuals
@@ -472,6 +493,12 @@ def fit_linear(
     )
 
 
+#: the run mean's 1/f wander in units of tau^2 = B^2 / pi: the Allan floor (2 ln2 / pi) B^2 ([IEEE952] C.3)
+FLICKER_WHITE = 2.0 * np.log(2.0)
+#: ``flicker_tau2`` value meaning "an Allan analysis looked for a 1/f level and did not see it" (see fit_linear)
+FLICKER_UNDETECTED = -1.0
+
+
 def log_kernel(t_mid: np.ndarray, t_len: np.ndarray) -> np.ndarray:
     """Covariance shape of window means of 1/f (flicker, bias-instability) noise, up to a constant.
 
@@ -502,10 +529,14 @@ def flicker_prior_tau2(b: float | None) -> float | None:
 
     An undetected 1/f level is not a zero one: fixing tau^2 = 0 when the Allan fit put B at zero dropped the
     bias-instability wander from the biases' uncertainty (tactical accelerometer bias coverage 0.68, z sd 2.2 in
-    the full-chain Monte Carlo; 0.93 with this rule).
+    the full-chain Monte Carlo; 0.93 with this rule). B = 0 (looked for, not seen within the plateaus) returns
+    :data:`FLICKER_UNDETECTED`: :func:`fit_linear` then estimates tau^2 by REML, or with too few residual
+    dof for that bounds it by the plateau sems (see there).
     """
-    if b is None or not np.isfinite(b) or b <= 0:
+    if b is None or not np.isfinite(b) or b < 0:
         return None
+    if b == 0:
+        return FLICKER_UNDETECTED
     return float(b) ** 2 / np.pi
 
 
@@ -536,7 +567,7 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
     G = log_kernel(t_mid, t_len)
     # deviations from the run mean (double-centred kernel), plus the run mean's own wander at the Allan floor
     # sigma_A^2(T_run) = 2 ln2 tau^2: the bias estimate is uncertain by the bias instability at the run length
-    white = 2.0 * np.log(2.0)  # Allan floor of 1/f noise: (2 ln2 / pi) B^2 = 2 ln2 tau^2
+    white = FLICKER_WHITE  # Allan floor of 1/f noise: (2 ln2 / pi) B^2 = 2 ln2 tau^2
     G = G - G.mean(axis=0, keepdims=True) - G.mean(axis=1, keepdims=True) + G.mean() + white
     n, p = X.shape
     scale = float(np.median(D0))

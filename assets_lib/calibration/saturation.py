@@ -17,6 +17,8 @@ def detect_saturation(
     sample_sigma: np.ndarray | None = None,
     x_unit: str = "",
     x_factor: float = 1.0,
+    flat_fraction: float = 0.01,
+    flat_gain_ratio: float = 0.9,
 ) -> dict[int, str]:
     """Saturation at both ends of a rate sweep; returns {row: reason} (flat tops beyond the input range, [IEEE952] / [IEEE1293] input limits; [SEED001] drops its 90 deg/s point by hand).
 
@@ -24,7 +26,12 @@ def detect_saturation(
        a plateau is saturated when its incremental gain to the next inner plateau is below ``gain_ratio`` * K
        (the output has stopped following the input: no sensor loses half its gain inside its linear range)
        *and* the output shortfall K dx - dy exceeds ``n_sigma`` standard errors of the difference (sems when
-       given, else the robust residual scale of the sweep, 1.4826 MAD).
+       given, else the robust residual scale of the sweep, 1.4826 MAD). A literal flat top counts too: a plateau
+       whose sem is below ``flat_fraction`` of the sweep's median sem (every sample clipped to the same code) and
+       whose incremental gain has dropped below ``flat_gain_ratio`` * K with the same significant shortfall; it
+       does not need the gain-ratio test, which a gap in the sweep can defeat (a flagged plateau between a railed
+       +400 deg/s point and +100 deg/s gave an incremental gain of 0.503: the railed point was fitted and read as
+       K+ = 0.62, z = -148 in the coverage benchmark's trial 2026/737).
     2. At the rail (``rail=True``). Once an end has a flat top, its level is the rail. Walking further inward, a
        plateau whose straight-line prediction (Theil-Sen on the remaining plateaus) comes within 3 sample
        standard deviations of the rail has samples clipped, so its mean is biased towards the rail: it is
@@ -60,6 +67,11 @@ def detect_saturation(
         ss = np.where(np.isfinite(ss) & (ss > 0), ss, np.maximum(s_rob, sg))
     else:
         ss = np.maximum(s_rob, sg)
+    flat = np.zeros(len(idx), bool)
+    if sigma is not None:
+        sem = np.asarray(sigma, float)[idx]
+        med = float(np.nanmedian(np.where(np.isfinite(sem), sem, np.nan))) if np.any(np.isfinite(sem)) else 0.0
+        flat = np.isfinite(sem) & (med > 0) & (sem < flat_fraction * med)
     order = np.argsort(xs, kind="stable")
     max_flag = len(idx) // 2
 
@@ -74,19 +86,21 @@ def detect_saturation(
             local = dy / dx
             shortfall = np.sign(K) * (K * dx - dy) * np.sign(dx)
             sd = np.sqrt(sg[j] ** 2 + sg[i_in] ** 2)
-            if local / K < gain_ratio and shortfall > n_sigma * sd and len(flagged) < max_flag:
-                flagged.append((j, local, shortfall / sd))
+            lost = local / K < gain_ratio or (flat[j] and local / K < flat_gain_ratio)
+            if lost and shortfall > n_sigma * sd and len(flagged) < max_flag:
+                flagged.append((j, local, shortfall / sd, bool(flat[j])))
             else:
                 break
         return flagged
 
     ends = [walk(list(order[::-1])), walk(list(order))]
     for flagged in ends:
-        for j, local, nsd in flagged:
+        for j, local, nsd, is_flat in flagged:
             out[int(idx[j])] = (
                 f"saturated: at input {xs[j] * x_factor:+.6g} {x_unit} the output has stopped following the input "
-                f"(incremental gain {local / K:.2f} of the sweep's robust gain, shortfall {nsd:.0f} sigma); "
-                "beyond the linear range"
+                f"(incremental gain {local / K:.2f} of the sweep's robust gain, shortfall {nsd:.0f} sigma"
+                + ("; flat top: sem below 1 % of the sweep's median, every sample at the same code" if is_flat else "")
+                + "); beyond the linear range"
             )
     if rail and any(ends):
         keep = np.array([int(idx[k]) not in out for k in range(len(idx))])
@@ -100,7 +114,7 @@ def detect_saturation(
                 ts = stats.theilslopes(ys[side], xs[side]) if side.sum() >= 3 and np.ptp(xs[side]) > 0 else \
                     stats.theilslopes(ys[keep], xs[keep])
                 line = ts.intercept + ts.slope * xs
-                y_rail = float(np.median([ys[j] for j, _, _ in flagged]))
+                y_rail = float(np.median([ys[j] for j, *_ in flagged]))
                 direction = np.sign(y_rail - np.median(ys))
                 inner = [k for k in seq if int(idx[k]) not in out]
                 for k in inner:

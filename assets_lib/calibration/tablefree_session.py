@@ -195,10 +195,13 @@ def coefficient_table(result: TableFreeResult, device_id: str, run_id: str, n_sa
                         rows.append(coefficient_row(sensor=sensor, axis=a, coefficient=f"misalignment_{a}{aj}",
                                                     value=sgn * R[i, j], stderr=sR[i, j], observable=True,
                                                     method="ferraris", note=note if sensor == "gyro" else "", **common))
+        # design.md's error model adds G f at the output, like the bias (y = K(I+E) w + b + G f; assets_lib.apply
+        # inverts it so), and imucal's u_g = K_g R_g w + K_ga a + b_g adds K_ga a there too: G = K_ga (deg/s -> rad/s
+        # per m/s^2), not K_ga / K_g (an input-referred value, off by the scale factor)
         for i, a in enumerate(AXES):
             for j, aj in enumerate(AXES):
                 rows.append(coefficient_row(sensor="gyro", axis=a, coefficient=f"g_sensitivity_{aj}",
-                                            value=f.K_ga[i, j] * d2r / f.K_g[i, i], stderr=f.stderr["K_ga"][i, j] * d2r,
+                                            value=f.K_ga[i, j] * d2r, stderr=f.stderr["K_ga"][i, j] * d2r,
                                             observable=True, method="ferraris", **common))
     return coefficient_frame(rows)
 
