@@ -218,8 +218,10 @@ def main(argv=None):
             report["per_device"] = per
             for k in ("wall", "cpu"):
                 p = per[k]
+                ratio = "n/a (slope not positive: load noise)" if p["speedup_per_device"] is None else \
+                    f"{p['speedup_per_device']}x"
                 print(f"per device ({k}): baseline {p['baseline_s_per_device']} s, this {p['this_s_per_device']} s "
-                      f"-> {p['speedup_per_device']}x (with certificates "
+                      f"-> {ratio} (with certificates "
                       f"{p['speedup_per_device_run_plus_certificates']}x); fixed per run: baseline "
                       f"{p['baseline_fixed_s_per_run']} s, this {p['this_fixed_s_per_run']} s", flush=True)
         if not args.no_full:
