@@ -19,6 +19,16 @@ This tree's ``imulab run`` renders no HTML certificate and no plot (``imulab cer
 on demand; the baseline drew both inside its run): ``imulab certificates`` on the fresh store is timed after the
 unchanged rerun and reported apart (``this_certificates``), with the CPU ratio of run + certificates.
 
+Per device, as issue 10 item 8 words the target: ``--devices 1,4`` simulates and runs fresh archives of both sizes
+(sizes in the order given, the trees interleaved at each size); the marginal cost per device is the slope
+(T(4) - T(1)) / 3 of wall and CPU seconds for each tree (the fixed cost per run, imports, instance and planning, is
+the intercept T(1) - slope, reported apart), and the per-device ratio is baseline slope / this slope. The
+unchanged rerun, the certificates, the full run and ``--same-as`` use the largest size; the total-run ratios are
+reported at every size. ``imulab certificates`` is timed at every size too (its own slope and the slope ratio of
+run + certificates).
+
+    python benchmarks/bench_run.py --baseline /work/baseline --devices 1,4 --no-full
+
 Targets (issue 10, item 8): fresh run per device >= 3x faster, unchanged archive < 3 s launching nothing.
 """
 
@@ -108,76 +118,134 @@ def compare_stores(a: Path, b: Path, skip=("calibration_record",)) -> dict:
             "skipped_assets": list(skip)}
 
 
+def slope_intercept(sizes: list[int], values: list[float]) -> tuple[float, float]:
+    """Marginal cost per device (slope between the smallest and the largest size) and the fixed cost (intercept)."""
+    (n0, v0), (n1, v1) = (sizes[0], values[0]), (sizes[-1], values[-1])
+    slope = (v1 - v0) / (n1 - n0)
+    return slope, v0 - slope * n0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--baseline", default="/work/baseline", help="source tree of the peer (the old main)")
-    ap.add_argument("--devices", type=int, default=3)
+    ap.add_argument("--devices", default="3", help="devices per archive; a comma list (e.g. 1,4) for the cost per "
+                                                   "device (slope) and per run (intercept)")
     ap.add_argument("--static-duration", type=float, default=1200.0)
     ap.add_argument("--same-as", default=None, help="a reference tree whose parquet outputs this tree must equal")
     ap.add_argument("--no-full", action="store_true", help="skip the full run (with sim_to_real)")
     ap.add_argument("--out", default=str(REPO / "benchmarks" / "results" / "run.json"))
     args = ap.parse_args(argv)
+    sizes = sorted({int(x) for x in str(args.devices).split(",")})
+    big = sizes[-1]
     root = Path(tempfile.mkdtemp(prefix="bench-run-"))
     base, this = Path(args.baseline), REPO
     like = ["--skip-stage", "sim_to_real"]
-    report: dict = {"devices": args.devices, "static_duration_s": args.static_duration, "cpus": os.cpu_count(),
-                    "load_avg_at_start": os.getloadavg(), "baseline_tree": str(base),
+    report: dict = {"devices": big, "device_sizes": sizes, "static_duration_s": args.static_duration,
+                    "cpus": os.cpu_count(), "load_avg_at_start": os.getloadavg(), "baseline_tree": str(base),
                     "compared_run": "this tree with --skip-stage sim_to_real (the baseline has no such stage)"}
+
+    def folders(label: str, n: int) -> tuple[Path, Path]:
+        return root / f"landing_{label}_{n}", root / f"data_{label}_{n}"
+
+    def certificates(n: int) -> dict:
+        landing, data = folders("this", n)
+        c = run(this, landing, data, like, command="certificates")
+        n_html = len(list((data / "store" / "certificate").glob("*/*/*.html")))
+        print(f"this     certificates ({n} devices) wall {c['wall_s']:7.1f} s  cpu {c['cpu_s']:6.1f} s  "
+              f"exit {c['rc']}  {n_html} certificates", flush=True)
+        return {"command": "imulab certificates --skip-stage sim_to_real", "wall_s": round(c["wall_s"], 1),
+                "cpu_s": round(c["cpu_s"], 1), "exit": c["rc"], "certificates": n_html}
+
     try:
-        for label, tree in (("baseline", base), ("this", this)):
-            report[f"captured_runs_{label}"] = simulate(tree, root / f"landing_{label}", args.devices,
-                                                        args.static_duration)
-            (root / f"data_{label}").mkdir()
-        res: dict = {}
-        for phase in ("fresh", "unchanged"):
+        for n in sizes:
             for label, tree in (("baseline", base), ("this", this)):
-                r = run(tree, root / f"landing_{label}", root / f"data_{label}", like if label == "this" else ())
-                res[(label, phase)] = r
-                ingested = len(list((root / f"data_{label}" / "store" / "ingested_run").glob("*/CURRENT")))
-                if ingested != report[f"captured_runs_{label}"]:  # the old main exits 0 on ingest errors
-                    raise SystemExit(f"{label}: {ingested} of {report[f'captured_runs_{label}']} runs ingested:\n"
-                                     + r["out"][-3000:])
-                print(f"{label:8s} {phase:9s} wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:6.1f} s  exit {r['rc']}  "
-                      f"runs launched {launched(r['out'])}", flush=True)
+                landing, data = folders(label, n)
+                report.setdefault("captured_runs", {})[f"{label}_{n}"] = simulate(tree, landing, n,
+                                                                                   args.static_duration)
+                data.mkdir()
+        report["captured_runs_baseline"] = report["captured_runs"][f"baseline_{big}"]
+        report["captured_runs_this"] = report["captured_runs"][f"this_{big}"]
+        res: dict = {}
+        for n, phase in [(n, "fresh") for n in sizes] + [(big, "unchanged")]:
+            for label, tree in (("baseline", base), ("this", this)):
+                landing, data = folders(label, n)
+                r = run(tree, landing, data, like if label == "this" else ())
+                res[(label, phase, n)] = r
+                ingested = len(list((data / "store" / "ingested_run").glob("*/CURRENT")))
+                if ingested != report["captured_runs"][f"{label}_{n}"]:  # the old main exits 0 on ingest errors
+                    raise SystemExit(f"{label}: {ingested} of {report['captured_runs'][f'{label}_{n}']} runs "
+                                     "ingested:\n" + r["out"][-3000:])
+                print(f"{label:8s} {phase:9s} {n} devices  wall {r['wall_s']:7.1f} s  cpu {r['cpu_s']:6.1f} s  "
+                      f"exit {r['rc']}  runs launched {launched(r['out'])}", flush=True)
         for label in ("baseline", "this"):
-            f, u = res[(label, "fresh")], res[(label, "unchanged")]
+            f, u = res[(label, "fresh", big)], res[(label, "unchanged", big)]
             report[label] = {"fresh_s": round(f["wall_s"], 1), "fresh_cpu_s": round(f["cpu_s"], 1),
-                             "fresh_s_per_device": round(f["wall_s"] / args.devices, 1),
-                             "fresh_cpu_s_per_device": round(f["cpu_s"] / args.devices, 1),
+                             "fresh_s_per_device": round(f["wall_s"] / big, 1),
+                             "fresh_cpu_s_per_device": round(f["cpu_s"] / big, 1),
                              "unchanged_s": round(u["wall_s"], 2), "unchanged_cpu_s": round(u["cpu_s"], 2),
                              "unchanged_runs_launched": launched(u["out"]), "exit_codes": [f["rc"], u["rc"]]}
         b, t = report["baseline"], report["this"]
         report["fresh_speedup_wall"] = round(b["fresh_s"] / t["fresh_s"], 2)
         report["fresh_speedup_cpu"] = round(b["fresh_cpu_s"] / t["fresh_cpu_s"], 2)
         report["unchanged_speedup_wall"] = round(b["unchanged_s"] / t["unchanged_s"], 2)
+        report["fresh_by_size"] = {}
+        for n in sizes:
+            fb, ft = res[("baseline", "fresh", n)], res[("this", "fresh", n)]
+            report["fresh_by_size"][str(n)] = {
+                **{f"{label}_{k}_s": round(r[f"{k}_s"], 1) for label, r in (("baseline", fb), ("this", ft))
+                   for k in ("wall", "cpu")},
+                **{f"speedup_{k}": round(fb[f"{k}_s"] / ft[f"{k}_s"], 2) for k in ("wall", "cpu")}}
         # the HTML certificates this tree renders on demand (the baseline rendered them inside its run)
-        c = run(this, root / "landing_this", root / "data_this", like, command="certificates")
-        n_html = len(list((root / "data_this" / "store" / "certificate").glob("*/*/*.html")))
-        report["this_certificates"] = {"command": "imulab certificates --skip-stage sim_to_real", "wall_s":
-                                       round(c["wall_s"], 1), "cpu_s": round(c["cpu_s"], 1), "exit": c["rc"],
-                                       "certificates": n_html}
-        report["fresh_plus_certificates_speedup_cpu"] = round(b["fresh_cpu_s"] / (t["fresh_cpu_s"] + c["cpu_s"]), 2)
-        print(f"this     certificates wall {c['wall_s']:7.1f} s  cpu {c['cpu_s']:6.1f} s  exit {c['rc']}  "
-              f"{n_html} certificates", flush=True)
+        certs = {n: certificates(n) for n in sizes}
+        report["this_certificates"] = certs[big]
+        report["fresh_plus_certificates_speedup_cpu"] = round(b["fresh_cpu_s"]
+                                                              / (t["fresh_cpu_s"] + certs[big]["cpu_s"]), 2)
+        if len(sizes) > 1:
+            report["this_certificates_by_size"] = {str(n): certs[n] for n in sizes}
+            per: dict = {"sizes": [sizes[0], big], "definition": "slope = (T(largest) - T(smallest)) / (devices "
+                         "difference), intercept = T(smallest) - slope * smallest; ratio = baseline / this"}
+            for k in ("wall", "cpu"):
+                sb, ib = slope_intercept(sizes, [res[("baseline", "fresh", n)][f"{k}_s"] for n in sizes])
+                st, it = slope_intercept(sizes, [res[("this", "fresh", n)][f"{k}_s"] for n in sizes])
+                sc, ic = slope_intercept(sizes, [certs[n][f"{k}_s"] for n in sizes])
+                per[k] = {"baseline_s_per_device": round(sb, 2), "this_s_per_device": round(st, 2),
+                          "speedup_per_device": round(sb / st, 2) if st > 0 else None,
+                          "baseline_fixed_s_per_run": round(ib, 2), "this_fixed_s_per_run": round(it, 2),
+                          "this_certificates_s_per_device": round(sc, 2),
+                          "this_certificates_fixed_s": round(ic, 2),
+                          "speedup_per_device_run_plus_certificates":
+                              round(sb / (st + sc), 2) if st + sc > 0 else None}
+            report["per_device"] = per
+            for k in ("wall", "cpu"):
+                p = per[k]
+                ratio = "n/a (slope not positive: load noise)" if p["speedup_per_device"] is None else \
+                    f"{p['speedup_per_device']}x"
+                print(f"per device ({k}): baseline {p['baseline_s_per_device']} s, this {p['this_s_per_device']} s "
+                      f"-> {ratio} (with certificates "
+                      f"{p['speedup_per_device_run_plus_certificates']}x); fixed per run: baseline "
+                      f"{p['baseline_fixed_s_per_run']} s, this {p['this_fixed_s_per_run']} s", flush=True)
         if not args.no_full:
+            landing, _ = folders("this", big)
             (root / "data_full").mkdir()
-            f = run(this, root / "landing_this", root / "data_full")
-            u = run(this, root / "landing_this", root / "data_full")
+            f = run(this, landing, root / "data_full")
+            u = run(this, landing, root / "data_full")
             report["this_full_run"] = {"fresh_s": round(f["wall_s"], 1), "fresh_cpu_s": round(f["cpu_s"], 1),
                                        "unchanged_s": round(u["wall_s"], 2), "unchanged_cpu_s": round(u["cpu_s"], 2),
                                        "unchanged_runs_launched": launched(u["out"]), "exit_codes": [f["rc"], u["rc"]]}
             print("this, full run (with sim_to_real):", report["this_full_run"], flush=True)
         if args.same_as:
+            landing, data = folders("this", big)
             (root / "data_ref").mkdir()
-            r = run(Path(args.same_as), root / "landing_this", root / "data_ref", like)
+            r = run(Path(args.same_as), landing, root / "data_ref", like)
             report["same_outputs"] = {"reference_tree": args.same_as, "reference_exit": r["rc"],
-                                      **compare_stores(root / "data_this" / "store", root / "data_ref" / "store")}
+                                      **compare_stores(data / "store", root / "data_ref" / "store")}
             print("same outputs:", report["same_outputs"], flush=True)
         report["load_avg_at_end"] = os.getloadavg()
-        print(f"fresh run: {report['fresh_speedup_wall']}x the baseline in wall time, {report['fresh_speedup_cpu']}x "
-              f"in CPU time; unchanged archive: {t['unchanged_s']} s wall, {t['unchanged_cpu_s']} s CPU, "
-              f"{t['unchanged_runs_launched']} Dagster runs launched (baseline {b['unchanged_s']} s, "
-              f"{b['unchanged_runs_launched']})")
+        print(f"fresh run ({big} devices): {report['fresh_speedup_wall']}x the baseline in wall time, "
+              f"{report['fresh_speedup_cpu']}x in CPU time; unchanged archive: {t['unchanged_s']} s wall, "
+              f"{t['unchanged_cpu_s']} s CPU, {t['unchanged_runs_launched']} Dagster runs launched (baseline "
+              f"{b['unchanged_s']} s, {b['unchanged_runs_launched']}); load {report['load_avg_at_start']} -> "
+              f"{report['load_avg_at_end']}")
     finally:
         shutil.rmtree(root, ignore_errors=True)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -5,8 +5,9 @@ matplotlib), so the stages listed here store tables only, and their figures are 
 ``certificate`` stage (the residual and Allan plots a certificate embeds) and by ``imulab plots`` (every figure,
 into a folder). A figure function ``figures(key, view) -> {name: PNG bytes}`` takes the partition key and a
 ``StoreView`` holding the stage's own stored version and the versions it was computed from (``view_of``); it
-reads the stored tables, or recomputes the in-memory result a figure needs from the same stored inputs with the
-stage's own code (segmentation, Allan fits, fleet drift), so a figure shows exactly the stored numbers.
+reads the stored tables (residuals, Allan curves and noise fits), or recomputes the in-memory result a figure needs
+from the same stored inputs with the stage's own code (segmentation, fleet drift), so a figure shows exactly the
+stored numbers.
 
 A new plotted stage adds one function and one line in ``FIGURES``; a stage not listed here keeps drawing its
 plots into its version folder (``stored_pngs`` reads those).
@@ -15,6 +16,10 @@ plots into its version folder (``stored_pngs`` reads those).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
 
 from assets_lib.store import StoreView, VersionedStore
 
@@ -46,16 +51,93 @@ def multiposition_figures(key: str, view: StoreView) -> dict[str, bytes]:
     return {"position_residuals": plot_multiposition_residuals_png(resid, title=f"{key}: multi-position residuals")}
 
 
+@dataclass(frozen=True)
+class StoredCurve:
+    """One channel's stored Allan curve (the ``allan`` table of ``allan_deviation``): what ``plot_allan`` draws."""
+
+    channel: str
+    kind: str
+    tau_s: np.ndarray
+    adev: np.ndarray
+    ci_lo: np.ndarray
+    ci_hi: np.ndarray
+    unit: str = ""  #: the stage passes no unit (plot label 'SI'), as ``allan_tables``
+
+
+@dataclass(frozen=True)
+class StoredNoiseModel:
+    """One channel's fitted noise model rebuilt from the stored ``noise`` table: theta = value^2 for the IEEE 952
+    terms and the sine, (markov_q T_c)^2 for the Markov term; its curves are NoiseFit's own code."""
+
+    terms: tuple
+    theta: np.ndarray
+    parameters: tuple  #: (name, is_upper_bound) of the fit rows, as NoiseFit.parameters for the plot's labels
+    markov_tc_s: float | None = None
+    sin_f0_hz: float | None = None
+
+    def term_avar(self, tau_s):
+        from assets_lib.noise.identification import NoiseFit
+
+        return NoiseFit.term_avar(self, tau_s)  # only reads terms, theta, markov_tc_s, sin_f0_hz
+
+    def model_avar(self, tau_s):
+        from assets_lib.noise.identification import NoiseFit
+
+        return NoiseFit.model_avar(self, tau_s)
+
+
+@dataclass(frozen=True)
+class _Param:
+    name: str
+    is_upper_bound: bool
+
+
+_TERM_OF = {"markov_q": "M", "sin_amplitude": "S"}
+
+
+def stored_noise_model(rows: pd.DataFrame) -> StoredNoiseModel | None:
+    """The drawn model of one channel from its ``noise`` rows (method 'fit'); None when the rows do not determine
+    it: a term reported as an upper bound has theta 0 in the fit, except when every term is a bound (the last
+    term standing is kept at its estimate) and for the Markov term (its estimate at the best T_c may be kept
+    while the profile set of T_c makes it a bound)."""
+    fit = rows[rows.method == "fit"]
+    extra = {r.parameter: float(r.value) for r in fit.itertuples() if r.parameter in ("markov_tc", "sin_freq")}
+    model = fit[~fit.parameter.isin(["markov_tc", "sin_freq"])]
+    bound = model.is_upper_bound.astype(bool).to_numpy()
+    if model.empty or bound.all() or bool(((model.parameter == "markov_q").to_numpy() & bound).any()):
+        return None
+    terms, theta = [], []
+    for r in model.itertuples():
+        t = _TERM_OF.get(r.parameter, r.parameter)
+        v = 0.0 if r.is_upper_bound else float(r.value) * (extra["markov_tc"] if t == "M" else 1.0)
+        terms.append(t)
+        theta.append(v * v)
+    return StoredNoiseModel(tuple(terms), np.array(theta), tuple(_Param(r.parameter, bool(r.is_upper_bound))
+                                                                for r in fit.itertuples()),
+                            extra.get("markov_tc"), extra.get("sin_freq"))
+
+
 def allan_figures(key: str, view: StoreView) -> dict[str, bytes]:
-    """Log-log Allan deviation with intervals and the fitted noise model, gyro and accel (recomputed from the
-    ingested run by the stage's own ``allan_tables``: the curves and fits of the stored tables)."""
+    """Log-log Allan deviation with intervals and the fitted noise model, gyro and accel, drawn from the stored
+    ``allan`` (curves) and ``noise`` (fit) tables; a channel whose stored rows do not determine the drawn model
+    (``stored_noise_model``) is recomputed from the ingested run by the stage's own ``allan_tables``."""
     from assets_lib.noise.identification import plot_allan
-    from assets_lib.stages.noise import allan_tables
     from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
 
-    imu = view.table("ingested_run", "imu")
-    *_, results, fits = allan_tables(key, imu, view.meta("ingested_run"))
-    return {f"allan_{sensor}": plot_allan({c: results[c] for c in cols}, {c: fits[c] for c in cols},
+    allan, noise = view.table("allan_deviation", "allan"), view.table("allan_deviation", "noise")
+    curves, fits = {}, {}
+    for c in GYRO_COLUMNS + ACCEL_COLUMNS:
+        a = allan[allan.channel == c]
+        curves[c] = StoredCurve(c, str(a.kind.iloc[0]), *(a[k].to_numpy(float) for k in ("tau_s", "adev", "ci_lo",
+                                                                                           "ci_hi")))
+        fits[c] = stored_noise_model(noise[noise.channel == c])
+    if any(f is None for f in fits.values()):
+        from assets_lib.stages.noise import allan_tables
+
+        *_, results, recomputed = allan_tables(key, view.table("ingested_run", "imu"), view.meta("ingested_run"))
+        curves = {c: results[c] if fits[c] is None else curves[c] for c in curves}
+        fits = {c: recomputed[c] if fits[c] is None else fits[c] for c in fits}
+    return {f"allan_{sensor}": plot_allan({c: curves[c] for c in cols}, {c: fits[c] for c in cols},
                                           title=f"{key}: {sensor}")
             for sensor, cols in (("gyro", GYRO_COLUMNS), ("accel", ACCEL_COLUMNS))}
 
