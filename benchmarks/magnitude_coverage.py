@@ -23,7 +23,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from withheld_effects import cases, write_case  # noqa: E402
+from withheld_effects import cases, write_case
 
 
 def interval_of(landing: Path, dev: str, n_aug: int, seed: int = 0) -> dict:
