@@ -253,7 +253,10 @@ def where_table(vt: ViewTable, vt_after: ViewTable | None) -> pd.DataFrame:
     explained = t[t["_drop"] > 1.0].sort_values("_drop", ascending=False)
     rest = t[~(t["_drop"] > 1.0)]  # vt's order: by p, then |z|
     rest = rest[rest["significant"]] if rest["significant"].any() else rest.head(10)
-    return pd.concat([explained.head(40), rest]).drop(columns="_drop")
+    out = pd.concat([explained.head(40), rest]).drop(columns="_drop")
+    for c in ("run_id", "channel"):  # None (device-level views) survives the merge as NaN
+        out[c] = out[c].astype(object).where(out[c].notna(), None)
+    return out
 
 
 def _omega_max(exp: DeviceExperiment) -> float:
