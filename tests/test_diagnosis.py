@@ -152,6 +152,33 @@ def test_magnitude_interval_covers_with_three_runs_and_few_replicates():
     assert hits / n >= 0.9, hits / n
 
 
+def test_where_leads_with_the_views_the_accepted_effect_explains():
+    """After an acceptance the "where" ranks first the views of the effect's channel whose |z| the augmented twin
+    removes; a shared accelerometer tail (z 5 before and after) and a drop on a channel the effect does not act
+    on (replicate noise) do not lead."""
+    import pandas as pd
+
+    from assets_lib.simreal.diagnose import where_table
+    from assets_lib.simreal.views import ViewTable
+
+    cols = ["view", "run_id", "channel", "step_index", "real", "rep_mean", "rep_sd", "z", "p", "q", "significant",
+            "stochastic"]
+    rows = [["residual_vs_temperature", "r1", "accel_x", None, 0, 0, 1, 5.4, 1e-6, 0.03, False, False],
+            ["accel_rate_run_centripetal_y", "r2", None, None, 0, 0, 1, -3.9, 1e-4, 0.9, False, False],
+            ["residual_vs_time_since_power_on_exp", None, "gyro_y", None, 0, 0, 1, 3.4, 1e-3, 0.9, False, False],
+            ["allan_band_tau1s", "r0", "gyro_y", None, 0, 0, 1, 3.0, 1e-3, 0.9, False, True]]
+    before = pd.DataFrame(rows, columns=cols)
+    after = before.copy()
+    after["z"] = [5.3, 0.0, 0.02, 0.0]
+    w = where_table(ViewTable(before), ViewTable(after), [("warmup_bias", "gyro_y", np.array([1e-4]), 300.0)])
+    top = w.iloc[0]
+    assert (top["view"], top["run_id"], top["channel"]) == ("residual_vs_time_since_power_on_exp", None, "gyro_y")
+    assert abs(top["z_after"]) < 0.1
+    assert w.iloc[1]["view"] == "residual_vs_temperature"  # then by p
+    plain = where_table(ViewTable(before), None)
+    assert plain.iloc[0]["view"] == "residual_vs_temperature"
+
+
 def test_noise_refit_recovers_a_gauss_markov_bump():
     """twin.refit_noise on an exact Allan curve of white noise + a 20 s Gauss-Markov term recovers both."""
     from types import SimpleNamespace

@@ -247,7 +247,7 @@ def select(d: Design, thresholds: dict | None = None) -> Selection:
 def magnitude_interval(mag_of, coef: np.ndarray, cov: np.ndarray | None, boots: np.ndarray, jack: np.ndarray,
                        level: float = 0.95) -> tuple[float, float, float]:
     """(estimate, lo, hi) of a magnitude ``mag_of(coef)`` from three uncertainty sources, combined in quadrature
-    with a Welch-Satterthwaite t quantile [WELCH1947]:
+    with a Welch-Satterthwaite t quantile [SATTERTHWAITE1946]:
 
     - the whitened least-squares standard error (delta method on ``cov``; infinite dof): the noise the twin's
       whitening implies, a floor for the parametric bootstrap when it has few replicates;

@@ -164,7 +164,7 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     gap = {"detected": bool(verdict != "no_gap"),
            "z": float(abs(top["z"])) if top is not None else 0.0,
            "p_value": float(vt.table["q"].min()) if len(vt.table) else 1.0}
-    where_t = where_table(vt, vt_after)
+    where_t = where_table(vt, vt_after, effects)
     where = [{"view": r.view, "run_id": r.run_id, "channel": r.channel,
               "step_index": None if r.step_index is None or (isinstance(r.step_index, float) and np.isnan(r.step_index))
               else int(r.step_index), "z": float(r.z), "q_value": float(r.q),
@@ -232,11 +232,30 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     return Diagnosis(report, twin, aug, vt, vt_after, tm, plots)
 
 
-def where_table(vt: ViewTable, vt_after: ViewTable | None) -> pd.DataFrame:
+def _acted_on(effects: list) -> tuple[set, set]:
+    """Channels the accepted effects act on, and the joint (channel-less) views of their families."""
+    from assets_lib.simreal.views import _JOINT_VIEWS
+
+    chans, views = set(), set()
+    for fam, ch, *_ in effects:
+        f = fx.FAMILIES[fam]
+        if ch is not None:
+            chans.add(ch)
+        else:
+            chans.update(fx.CHANNEL_NAMES[j] for j in (f.channels or range(6))
+                         if fam != "table_wobble" or j >= 3)  # wobble: accelerometers only
+        views.update(v for v, _ in _JOINT_VIEWS.get(fam, []))
+        if fam == "lever_arm":
+            views.update(f"accel_rate_run_centripetal_{a}" for a in "xyz")
+    return chans, views
+
+
+def where_table(vt: ViewTable, vt_after: ViewTable | None, effects: list | None = None) -> pd.DataFrame:
     """The report's ranked "where": the significant views (else the 10 smallest p), by p.
 
     With accepted effects, the views are ranked by how much of their |z| the augmented twin removes,
-    |z_base| - |z_augmented| (deterministic views whose |z| drops by more than 1, largest drop first), then the
+    |z_base| - |z_augmented| (deterministic views on a channel an accepted effect acts on, or joint views of its
+    family, whose |z| drops by more than 1, largest drop first: a drop elsewhere is replicate noise), then the
     rest by p: the gap the accepted effect explains is located by the views it explains, so a tail that the base
     and augmented twins share (measured on the near-limit WH-021/WH-023: accelerometer views at z 4-5, as on
     null devices, outranked the gyro views the accepted effect moved) does not lead the list.
@@ -249,6 +268,9 @@ def where_table(vt: ViewTable, vt_after: ViewTable | None) -> pd.DataFrame:
     za = vt_after.table[key + ["z"]].rename(columns={"z": "z_after"})
     t = t.astype({"step_index": float}).merge(za.astype({"step_index": float}), on=key, how="left")
     drop = np.where(t["stochastic"], -np.inf, t["z"].abs() - t["z_after"].abs().fillna(np.inf))
+    if effects:  # only views on what the accepted effects act on can be explained by them
+        chans, jviews = _acted_on(effects)
+        drop = np.where(t["channel"].isin(chans) | t["view"].isin(jviews), drop, -np.inf)
     t["_drop"] = drop
     explained = t[t["_drop"] > 1.0].sort_values("_drop", ascending=False)
     rest = t[~(t["_drop"] > 1.0)]  # vt's order: by p, then |z|
