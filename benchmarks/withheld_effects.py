@@ -119,8 +119,7 @@ class Hidden:
         elif k == "table_wobble":
             e = np.asarray(p["eps_level"])
             eb = np.einsum("nji,j->ni", tr.c_b2l, e)
-            g += wt[:, None] * np.cross(eb, u)
-            a += -np.cross(eb, f)
+            a += -np.cross(eb, f)  # rigid axis tilt: the body rate is unchanged (no gyro term)
         elif k == "noise_gm":  # Gauss-Markov bump the IEEE 952 Q/N/B/K model cannot follow
             rng = np.random.default_rng(self.run_seed + 17)
             dt = float(np.median(np.diff(t)))

@@ -80,6 +80,105 @@ def test_ambiguity_when_the_winner_is_not_ahead_in_k_minus_1_folds():
     assert at._separable(best, warm)  # ahead in 5 of 6 folds
 
 
+def _rate_design(effect, n_runs: int = 3, seed: int = 0):
+    """A synthetic design of gyro-z plateau means in rate runs (identity whitening, nuisance bias + scale factor)
+    carrying ``effect(omega)`` plus unit white noise: the rows ``lack_of_fit`` reads."""
+    from assets_lib.simreal import effects as fx
+    from assets_lib.simreal.design import ATOMS, N_COLS, Design
+
+    rng = np.random.default_rng(seed)
+    w = np.deg2rad(np.array([-400, -300, -200, -100, -50, -20, 20, 50, 100, 200, 300, 400.0]))
+    n, j = w.size, 2
+    feat = {"n": n, "omega": np.column_stack([0 * w, 0 * w, w]), "omega_motion": np.column_stack([0 * w, 0 * w, w]),
+            "force": np.tile([0.0, 0.0, -9.8], (n, 1)), "temp": np.full(n, 25.0), "t_on": np.arange(n) * 60.0,
+            "is_rate": np.ones(n, bool), "step": np.arange(n, dtype=float), "temp_lag": {}}
+    X = np.zeros((n, N_COLS))
+    for a in ATOMS:
+        if a.channel == j and a.family in ("scale_factor_nonlinearity", "scale_factor_asymmetry"):
+            X[:, list(a.cols)] = fx.columns(a.family, "A", feat, j, a.shape)
+    N = np.column_stack([np.ones(n), w])
+    Q = np.linalg.qr(N)[0]
+    M = np.eye(n) - Q @ Q.T
+    P = len(ATOMS)
+    gram = np.zeros((n_runs, 3, N_COLS, N_COLS))
+    xty = np.zeros((n_runs, 3, N_COLS))
+    yty = np.zeros((n_runs, 3))
+    a_rows = {}
+    for k in range(n_runs):
+        y = M @ (effect(w) + rng.standard_normal(n))
+        Xr = M @ X
+        gram[k, 0], xty[k, 0], yty[k, 0] = Xr.T @ Xr, Xr.T @ y, y @ y
+        a_rows[(k, j)] = {"y": y, "X": Xr, "M": M, "keys": [(("rate", n), i) for i in range(n)]}
+    carries = np.zeros((n_runs, P), bool)
+    for ai, a in enumerate(ATOMS):
+        carries[:, ai] = np.diag(gram[:, 0].sum(0))[list(a.cols)].sum() > 0
+    return Design(tuple(f"r{k}" for k in range(n_runs)), gram, xty, yty, carries, None, {}, a_rows)
+
+
+def _atom(family: str, channel: int = 2) -> int:
+    from assets_lib.simreal.design import ATOMS
+
+    return next(i for i, a in enumerate(ATOMS) if a.family == family and a.channel == channel)
+
+
+def test_lack_of_fit_flags_a_form_outside_the_library_and_not_a_library_form():
+    """An omega abs(omega) (outside the library) fitted by omega^2 + omega^3 leaves a repeatable residual at every
+    rate that a per-step saturated model predicts on the held-out run; an omega^2 + omega^3 truth leaves none."""
+    nl = _atom("scale_factor_nonlinearity")
+    k = 1500.0  # whitened units at 1 rad/s^2
+    d_out = _rate_design(lambda w: k * w * np.abs(w))
+    sel = at.select(d_out)
+    assert [s.atom for s in sel.accepted][:1] == [nl]
+    lf = at.lack_of_fit(d_out, [nl], nl)
+    assert lf.significant(at.GATE), lf
+    d_in = _rate_design(lambda w: k * (w**2 - 0.3 * w**3), seed=1)
+    assert [s.atom for s in at.select(d_in).accepted][:1] == [nl]
+    lf_in = at.lack_of_fit(d_in, [nl], nl)
+    assert not lf_in.significant(at.GATE) and lf_in.delta_lpd < 0, lf_in
+
+
+def test_magnitude_interval_covers_with_three_runs_and_few_replicates():
+    """Coverage of ``magnitude_interval`` when the estimate scatters between runs beyond the noise (a twin-parameter
+    error per run): 3 jackknife folds (t with 2 dof, not 1.96) and 4 bootstrap refits that carry the noise only."""
+    rng = np.random.default_rng(3)
+    hits, n = 0, 400
+    for _ in range(n):
+        runs = 1.0 + 0.05 * rng.standard_normal(3) + 0.03 * rng.standard_normal(3)  # run effect + noise, truth 1
+        est = runs.mean()
+        jack = np.array([np.delete(runs, i).mean() for i in range(3)])
+        boots = est + 0.03 / np.sqrt(3) * rng.standard_normal(4)
+        _, lo, hi = at.magnitude_interval(lambda c: float(c[0]), np.array([est]), np.array([[0.03**2 / 3]]), boots, jack)
+        hits += lo <= 1.0 <= hi
+    assert hits / n >= 0.9, hits / n
+
+
+def test_where_leads_with_the_views_the_accepted_effect_explains():
+    """After an acceptance the "where" ranks first the views of the effect's channel whose |z| the augmented twin
+    removes; a shared accelerometer tail (z 5 before and after) and a drop on a channel the effect does not act
+    on (replicate noise) do not lead."""
+    import pandas as pd
+
+    from assets_lib.simreal.diagnose import where_table
+    from assets_lib.simreal.views import ViewTable
+
+    cols = ["view", "run_id", "channel", "step_index", "real", "rep_mean", "rep_sd", "z", "p", "q", "significant",
+            "stochastic"]
+    rows = [["residual_vs_temperature", "r1", "accel_x", None, 0, 0, 1, 5.4, 1e-6, 0.03, False, False],
+            ["accel_rate_run_centripetal_y", "r2", None, None, 0, 0, 1, -3.9, 1e-4, 0.9, False, False],
+            ["residual_vs_time_since_power_on_exp", None, "gyro_y", None, 0, 0, 1, 3.4, 1e-3, 0.9, False, False],
+            ["allan_band_tau1s", "r0", "gyro_y", None, 0, 0, 1, 3.0, 1e-3, 0.9, False, True]]
+    before = pd.DataFrame(rows, columns=cols)
+    after = before.copy()
+    after["z"] = [5.3, 0.0, 0.02, 0.0]
+    w = where_table(ViewTable(before), ViewTable(after), [("warmup_bias", "gyro_y", np.array([1e-4]), 300.0)])
+    top = w.iloc[0]
+    assert (top["view"], top["run_id"], top["channel"]) == ("residual_vs_time_since_power_on_exp", None, "gyro_y")
+    assert abs(top["z_after"]) < 0.1
+    assert w.iloc[1]["view"] == "residual_vs_temperature"  # then by p
+    plain = where_table(ViewTable(before), None)
+    assert plain.iloc[0]["view"] == "residual_vs_temperature"
+
+
 def test_noise_refit_recovers_a_gauss_markov_bump():
     """twin.refit_noise on an exact Allan curve of white noise + a 20 s Gauss-Markov term recovers both."""
     from types import SimpleNamespace

@@ -69,6 +69,10 @@ class Design:
     carries: np.ndarray  # (n_runs, n_atoms) bool: the run carries the atom's signature
     rows: pd.DataFrame  # block, run, channel, step_index, y (whitened residualised)
     extra_t: dict = field(default_factory=dict)  # view-only projection statistics {(view, run, channel): t}
+    #: block A per (run index, channel): whitened projected y and columns, the whitening-and-projection operator M
+    #: (any further signature on those rows enters as M @ x) and the plateaus' (plan, step) keys, for the
+    #: lack-of-fit test of accepted effects (``attribution.lack_of_fit``)
+    a_rows: dict = field(default_factory=dict)
 
 
 def _orth(a: np.ndarray, tol: float = 1e-10) -> np.ndarray:
@@ -129,6 +133,7 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
     carries = np.zeros((n_runs, len(ATOMS)), bool)
     rows = []
     extra = {}
+    a_rows = {}
     rails = twin.rails
     for ri, inp in enumerate(runs):
         pr: ProcessedRun = processed[inp.run_id]
@@ -180,6 +185,10 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                     L = np.diag(s[idx])
                 Li = np.linalg.inv(L)
                 yr, Xr = _project(Li @ y[idx], Li @ X, Li @ N)
+                Q = _orth(Li @ N)
+                plan_key = (inp.kind, len(getattr(getattr(inp.manifest, "plan", None), "steps", ()) or ()))
+                a_rows[(ri, j)] = {"y": yr, "X": Xr, "M": Li - Q @ (Q.T @ Li),
+                                   "keys": [(plan_key, int(st)) for st in p["step_index"].to_numpy()[idx]]}
                 # view-only: visit order
                 vo = Li @ sub["step"]
                 _, vr = _project(vo, vo[:, None], Li @ N)
@@ -239,7 +248,7 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
     for ai, at in enumerate(ATOMS):
         carries[:, ai] = np.any(share[:, list(at.cols)] >= 0.01, axis=1)
     df = pd.DataFrame(rows, columns=["block", "run_id", "channel", "step_index", "y"])
-    return Design(tuple(r.run_id for r in runs), gram, xty, yty, carries, df, extra)
+    return Design(tuple(r.run_id for r in runs), gram, xty, yty, carries, df, extra, a_rows)
 
 
 def real_rate_windows(runs, processed, imus: dict, rails=(None, None)) -> dict:

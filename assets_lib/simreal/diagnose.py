@@ -21,6 +21,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 
 from assets_lib.simreal import attribution as at
 from assets_lib.simreal import effects as fx
@@ -92,8 +93,10 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     thresholds = {gi: max(at.GATE, float(np.mean(v) + NULL_SD * np.std(v, ddof=1))) if len(v) > 2 else at.GATE
                   for gi, v in null_scores.items()}
     sel = at.select(real, thresholds)
-    tm["views_and_selection"] = time.time() - t2
     accepted_atoms = [s.atom for s in sel.accepted]
+    # does each accepted family's form explain the repeatable gap on its own rows? (else partly_explained)
+    lof = at.lack_of_fit_report(real, [r.design for r in reps], accepted_atoms, NULL_SD)
+    tm["views_and_selection"] = time.time() - t2
     effects = []
     for s in sel.accepted:
         a = ATOMS[s.atom]
@@ -132,7 +135,9 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     sig_sto = vt.significant(True)
     noise_refit, vt_noise = None, None
     if effects:
-        verdict = "explained" if (vt_after is not None and vt_after.significant(False).empty) else "partly_explained"
+        form_ok = not any(v["significant"] for v in lof.values())
+        verdict = "explained" if (form_ok and vt_after is not None and vt_after.significant(False).empty) \
+            else "partly_explained"
     elif not (sig_sto.empty and sig_det.empty) and any(r.kind == "static" for r in exp.runs):
         # a gap that no deterministic candidate explains (simreal sec. 4.2: route a stochastic gap to noise-model
         # re-estimation): re-fit the twin's noise to the long static record (IEEE 952 terms + a Gauss-Markov term)
@@ -159,10 +164,11 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     gap = {"detected": bool(verdict != "no_gap"),
            "z": float(abs(top["z"])) if top is not None else 0.0,
            "p_value": float(vt.table["q"].min()) if len(vt.table) else 1.0}
-    where_t = vt.table[vt.table["significant"]] if not vt.significant().empty else vt.table.head(10)
+    where_t = where_table(vt, vt_after, effects)
     where = [{"view": r.view, "run_id": r.run_id, "channel": r.channel,
               "step_index": None if r.step_index is None or (isinstance(r.step_index, float) and np.isnan(r.step_index))
-              else int(r.step_index), "z": float(r.z), "q_value": float(r.q)}
+              else int(r.step_index), "z": float(r.z), "q_value": float(r.q),
+              "z_after": None if not np.isfinite(r.z_after) else float(r.z_after)}
              for r in where_t.head(50).itertuples(index=False)]
     eff_out = []
     scale = {"omega_max": _omega_max(exp)}
@@ -171,22 +177,13 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
         mag = fx.magnitude(fam, coef, scale, chi)
         boots = np.array([fx.magnitude(fam, c[s.atom], scale, chi) for c in aug_coefs]) if aug_coefs else np.array([])
         jk = np.array([fx.magnitude(fam, c, scale, chi) for c in sel.jackknife.get(s.atom, [])])
-        # run-blocked jackknife [KUNSCH1989]: between-run scatter of the estimate, which carries what the
-        # parametric bootstrap of a fixed twin cannot (model-form and twin-parameter error that differ per run)
-        sd_jk = float(np.sqrt((jk.size - 1) / jk.size * np.sum((jk - jk.mean()) ** 2))) if jk.size >= 3 else 0.0
-        if boots.size >= 3:
-            sd_b = float(np.std(boots, ddof=1)) * np.sqrt(1 + 1 / boots.size)
-            bias = float(np.mean(boots) - mag)  # bootstrap bias of the magnitude estimator
-            sd = float(np.hypot(sd_b, sd_jk))
-            lo, hi = mag - bias - 1.96 * sd, mag - bias + 1.96 * sd
-        elif sd_jk > 0:
-            lo, hi = mag - 1.96 * sd_jk, mag + 1.96 * sd_jk
-        else:
-            lo = hi = float("nan")
+        _, lo, hi = at.magnitude_interval(lambda c_, f_=fam, ch_=chi: fx.magnitude(f_, c_, scale, ch_), coef,
+                                          sel.cov.get(s.atom), boots, jk)
         eff_out.append({"family": fam, "channel": ch, "magnitude": mag, "ci_lo": float(lo), "ci_hi": float(hi),
                         "unit": fx.unit_of(fam, ATOMS[s.atom].channel), "delta_lpd": float(s.delta_lpd),
                         "folds_positive": s.n_pos, "folds": len(s.folds),
                         "shape": {"tau_s": shape} if shape is not None else None,
+                        "lack_of_fit": lof.get(s.atom),
                         "coefficients": [float(c) for c in np.atleast_1d(coef)]})
     amb = []
     for grp in sel.ambiguity:
@@ -233,6 +230,55 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     plots = {"views": vt, "views_after": vt_after, "E": (E_base, E_model, floor), "real": real, "exp": exp,
              "effects": eff_out}
     return Diagnosis(report, twin, aug, vt, vt_after, tm, plots)
+
+
+def _acted_on(effects: list) -> tuple[set, set]:
+    """Channels the accepted effects act on, and the joint (channel-less) views of their families."""
+    from assets_lib.simreal.views import _JOINT_VIEWS
+
+    chans, views = set(), set()
+    for fam, ch, *_ in effects:
+        f = fx.FAMILIES[fam]
+        if ch is not None:
+            chans.add(ch)
+        else:
+            chans.update(fx.CHANNEL_NAMES[j] for j in (f.channels or range(6))
+                         if fam != "table_wobble" or j >= 3)  # wobble: accelerometers only
+        views.update(v for v, _ in _JOINT_VIEWS.get(fam, []))
+        if fam == "lever_arm":
+            views.update(f"accel_rate_run_centripetal_{a}" for a in "xyz")
+    return chans, views
+
+
+def where_table(vt: ViewTable, vt_after: ViewTable | None, effects: list | None = None) -> pd.DataFrame:
+    """The report's ranked "where": the significant views (else the 10 smallest p), by p.
+
+    With accepted effects, the views are ranked by how much of their |z| the augmented twin removes,
+    |z_base| - |z_augmented| (deterministic views on a channel an accepted effect acts on, or joint views of its
+    family, whose |z| drops by more than 1, largest drop first: a drop elsewhere is replicate noise), then the
+    rest by p: the gap the accepted effect explains is located by the views it explains, so a tail that the base
+    and augmented twins share (measured on the near-limit WH-021/WH-023: accelerometer views at z 4-5, as on
+    null devices, outranked the gyro views the accepted effect moved) does not lead the list.
+    """
+    t = vt.table.copy()
+    key = ["view", "run_id", "channel", "step_index"]
+    if vt_after is None or t.empty:
+        t["z_after"] = np.nan
+        return t[t["significant"]] if t["significant"].any() else t.head(10)
+    za = vt_after.table[key + ["z"]].rename(columns={"z": "z_after"})
+    t = t.astype({"step_index": float}).merge(za.astype({"step_index": float}), on=key, how="left")
+    drop = np.where(t["stochastic"], -np.inf, t["z"].abs() - t["z_after"].abs().fillna(np.inf))
+    if effects:  # only views on what the accepted effects act on can be explained by them
+        chans, jviews = _acted_on(effects)
+        drop = np.where(t["channel"].isin(chans) | t["view"].isin(jviews), drop, -np.inf)
+    t["_drop"] = drop
+    explained = t[t["_drop"] > 1.0].sort_values("_drop", ascending=False)
+    rest = t[~(t["_drop"] > 1.0)]  # vt's order: by p, then |z|
+    rest = rest[rest["significant"]] if rest["significant"].any() else rest.head(10)
+    out = pd.concat([explained.head(40), rest]).drop(columns="_drop")
+    for c in ("run_id", "channel"):  # None (device-level views) survives the merge as NaN
+        out[c] = out[c].astype(object).where(out[c].notna(), None)
+    return out
 
 
 def _omega_max(exp: DeviceExperiment) -> float:

@@ -25,7 +25,8 @@ scale_factor_nonlinearity   A      omega_j^2, omega_j^3                         
 scale_factor_asymmetry      A      |omega_j|                                            rate runs
 lever_arm                   A      omega x (omega x r) on the accelerometers (3 cols)   rate runs
 table_rate_error            B      u_j omega_t {sin, cos}(k theta), k = 1, 2            rate runs
-table_wobble                B      omega_t (e_m x u)_j, -(e_m x f)_j, m = 1, 2           rate runs
+table_wobble                B      accelerometers: -(e_m x f)_j, m = 1, 2 (1/rev); gyros:    rate runs
+                                   none (a rigid axis tilt leaves the body rate unchanged)
 timebase_error              C      clock drift [ppm] = -1e6 eps (t_imu = (1+eps) t)     runs with a table log
 =========================== ====== ==================================================== =========================
 
@@ -143,11 +144,15 @@ def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np
                 z[:, 2 * k] = u[:, j] * wt * np.sin(h * th)
                 z[:, 2 * k + 1] = u[:, j] * wt * np.cos(h * th)
         elif family == "table_wobble":
+            # a rigid tilt eps of the bearing axis (fixed in the level frame): the table spins about a body-fixed
+            # axis, so the body rate is unchanged (no gyro term; the earth-rate projection moves by
+            # Omega_e eps ~ 1e-8 rad/s, negligible) while the tilt, seen from the IMU, turns once per revolution
+            # and rotates the specific force: delta f_b = -(eps_b x f_b) (effects.md sec. 1, table wobble;
+            # assets_lib.sim.effects.motion.TableWobble)
+            if j < 3:
+                return None
             for m, e in enumerate((e1, e2)):
-                if j < 3:
-                    z[:, m] = wt * np.cross(e, u)[:, j]
-                else:
-                    z[:, m] = -np.cross(e, f)[:, j - 3]
+                z[:, m] = -np.cross(e, f)[:, j - 3]
     elif block == "C" and family == "timebase_error":
         # segmentation's clock drift of a run whose IMU stamps run fast, t_imu = (1 + eps) t_table, is -1e6 eps
         z[:, 0] = -1e6
@@ -226,8 +231,7 @@ def inject(family: str, channel, coef, shape, inp, g: np.ndarray, a: np.ndarray,
         rip = c[0] * np.sin(th) + c[1] * np.cos(th) + c[2] * np.sin(2 * th) + c[3] * np.cos(2 * th)
         out[0] += (wt * rip)[:, None] * inp.table_axis_b
     elif family == "table_wobble":
-        eps = c[0] * inp.tilt_e1_b + c[1] * inp.tilt_e2_b
-        out[0] += inp.table_rate_radps[:, None] * np.cross(eps, inp.table_axis_b)
+        eps = c[0] * inp.tilt_e1_b + c[1] * inp.tilt_e2_b  # rigid axis tilt: accelerometers only (columns)
         out[1] += -np.cross(eps, f)
     elif family == "timebase_error":
         pass  # acts on the time stamps (twin.simulate_run_imu)

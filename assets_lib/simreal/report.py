@@ -78,6 +78,13 @@ def answers(rep: dict) -> list[str]:
             (f"{ci[1] * 100:.0f} %)" if ci[1] is not None else "unbounded)")
         out.append(f"How far it shrinks: modelled, the held-out gap shrinks by {sh['ratio'] * 100:.0f} %{ci_s}; "
                    f"{sh['remaining_floor_sd']:.1f} floor-sd remain. Verdict: {v.replace('_', ' ')}.")
+        for e in rep["effects"]:
+            lf = e.get("lack_of_fit")
+            if lf and lf.get("significant"):
+                out.append(f"The form of {e['family'].replace('_', ' ')} does not follow the gap on its own rows: a "
+                           f"free level per plan step predicts the held-out runs better by {lf['delta_lpd']:.1f} "
+                           f"(gate {lf['gate']:.1f}, {lf['folds_positive']}/{lf['folds']} folds), so an effect "
+                           "outside the library remains.")
         if v == "partly_explained" and rep.get("views_after"):
             va = rep["views_after"][0]
             out.append(f"Still unexplained after the fix: {plain_view(va['view'])} (z = {va['z']:.1f}).")
