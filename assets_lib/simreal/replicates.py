@@ -4,9 +4,10 @@ Each replicate r of a device: every run simulated by ``twin.simulate_run_imu`` w
 processed by ``experiment.process_run`` (segmentation and library fits), the replicate's **own twin** fitted from it
 by ``twin.fit_twin`` (the estimator the real data went through), then turned into a ``Design`` against that own twin
 and its views. A parametric-bootstrap check compares T(y, theta_hat(y)) on the real data with
-T(y_r, theta_hat(y_r)) on each replicate (Efron & Tibshirani 1993, ch. 6: the bootstrap repeats every
+T(y_r, theta_hat(y_r)) on each replicate ([EFRON1993] ch. 6: the bootstrap repeats every
 data-dependent step); computing the replicate's statistic against the real data's theta_hat instead leaves out the
-twin's estimation error, which at R = 100 made a null device significant (docs/simreal.md, "Deviations"). Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
+twin's estimation error (the real residuals are taken against parameters fitted to them, a replicate's were not).
+Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
 copy-on-write, never pickled); results depend only on (seed, r), so they are identical for any worker count.
 The plan kinematics and flicker spectral shapes are cached across replicates (bit-identical to computing them).
 """

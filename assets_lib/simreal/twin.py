@@ -4,7 +4,8 @@ Sensor model of docs/design.md ([SEED000] eq. 1-2): gyro y = M_g omega + b + G f
 f (Kc f); noise from the IEEE 952 Annex C terms. Every coefficient comes from the library fits of the device's
 own runs (``fit_gyro_rate`` rows for M_g, ``fit_gyro_static`` for G, ``fit_accel_multiposition`` for M_a, K2,
 Kc), per power cycle, the bias per run (weighted mean of the run's plateau residuals), the noise of each channel
-from segmentation's pooled Allan model of the device's longest static record (else the median over runs), and
+from segmentation's pooled Allan models of the runs (median of Q, N, K; B from the mean of their flicker
+variance estimates), and
 the output rails where the real data pile up at a full-scale value. A replicate of a run (``simulate_run_imu``)
 uses the run's recorded time stamps, temperature log and table motion; the twin's effects (``effects.py``) are
 added before saturation and quantization, like the simulator's effect chain.
