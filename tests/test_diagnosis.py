@@ -199,6 +199,68 @@ def test_noise_refit_recovers_a_gauss_markov_bump():
     assert t2.noise[0].n == pytest.approx(n, rel=1e-3) and t2.gm[0][0] == pytest.approx(sig, rel=1e-3)
 
 
+def test_allan_band_is_relative_to_the_records_own_ieee952_fit():
+    """views.allan_fit_residual: ~0 on an exact IEEE 952 curve whatever its terms (the statistic does not depend
+    on the twin's noise estimate), 40x larger where a 20 s Gauss-Markov bump bends the curve; on simulated white +
+    flicker noise its sd is of order 1 (sqrt(2 EDF) scaling)."""
+    from assets_lib.calibration.segmentation import overlapping_avar
+    from assets_lib.sim.effects.stochastic import gauss_markov_avar
+    from assets_lib.sim.noise import AllanParams, allan_noise
+    from assets_lib.simreal.views import allan_fit_residual
+
+    tau = 0.01 * 2.0 ** np.arange(0, 14)
+    edf = 1.2e5 / (tau / 0.01)
+    for p in (AllanParams(n=4e-5), AllanParams(n=4e-5, b=4e-6, k=4e-8), AllanParams(q=1e-6, n=5e-4, b=2e-4)):
+        r = allan_fit_residual(tau, np.sqrt(p.avar(tau)), edf)
+        assert np.nanmax(np.abs(r)) < 0.05
+    bump = AllanParams(n=4e-5, b=4e-6).avar(tau) + gauss_markov_avar(tau, 8 * 4e-6, 20.0)
+    assert np.nanmax(np.abs(allan_fit_residual(tau, np.sqrt(bump), edf))) > 1.5
+    rng = np.random.default_rng(1)
+    x = allan_noise(120_000, 100.0, AllanParams(n=4e-5, b=4e-6), rng)
+    m = np.unique(np.round(2.0 ** np.arange(0, np.log2(x.size / 8.0))).astype(int))
+    av, terms = overlapping_avar(x, m)
+    r = allan_fit_residual(m / 100.0, np.sqrt(av), terms / m)
+    assert np.isfinite(r).sum() >= 10 and np.nanstd(r) < 3
+
+
+def test_twin_bias_instability_pools_every_runs_estimate():
+    """twin._noise: B from the mean over runs of segmentation's flicker variance estimate, so runs whose SEM model
+    left B out (read as 0) do not pull the twin's B to 0 (the median did: TAC-002 gyro B 0 vs truth 3.9e-6)."""
+    from types import SimpleNamespace
+
+    from assets_lib.noise.pooled import PooledAllanFit
+    from assets_lib.simreal.twin import _noise
+
+    c = 2 * np.log(2) / np.pi
+    fits = [PooledAllanFit(np.zeros(3), np.full(3, 1e-9), fl, 0.0, est)
+            for fl, est in ((0.0, c * 3e-6**2), (0.0, 0.0), (c * 5e-6**2, c * 5e-6**2), (0.0, 0.0), (0.0, c * 4e-6**2))]
+    runs = [SimpleNamespace(run_id=f"r{i}") for i in range(len(fits))]
+    from assets_lib.calibration.segmentation import CHANNELS
+
+    exp = SimpleNamespace(runs=runs, processed={r.run_id: SimpleNamespace(noise_fits={ch: f for ch in CHANNELS})
+                                                for r, f in zip(runs, fits)})
+    b = _noise(exp)[0].b
+    assert b == pytest.approx(np.sqrt((3e-6**2 + 5e-6**2 + 4e-6**2) / 5), rel=1e-9)
+    assert _noise(exp)[0].n == pytest.approx(np.sqrt(1e-9))
+
+
+def test_empirical_null_spares_stochastic_views():
+    """A shift of every Allan band of a sensor (a noise-model mismatch) stays significant: the empirical null only
+    rescales deterministic groups, whose real-vs-replicate dispersion can come from the twin's estimation error."""
+    from assets_lib.simreal.views import calibrate
+
+    rng = np.random.default_rng(7)
+    R = 20
+    keys_s = [(f"allan_band_tau{t:.3g}s", "st", f"gyro_{a}", None) for t in 2.0 ** np.arange(12) for a in "xyz"]
+    keys_d = [("plateau_residual", "r1", "gyro_x", k) for k in range(36)]
+    reps = [{k: rng.standard_normal() for k in keys_s + keys_d} for _ in range(R)]
+    real = {k: 8.0 + 0.3 * rng.standard_normal() for k in keys_s}
+    real.update({k: 8.0 + 0.3 * rng.standard_normal() for k in keys_d})
+    t = calibrate(real, reps).table
+    assert t[t["stochastic"]]["significant"].all()
+    assert not t[~t["stochastic"]]["significant"].any()
+
+
 @pytest.mark.slow
 def test_null_device_report_schema_cli_and_determinism(null_archive, tmp_path):
     from click.testing import CliRunner

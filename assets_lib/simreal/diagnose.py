@@ -75,7 +75,7 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
     windows = real_rate_windows(exp.runs, exp.processed, exp.imu, twin.rails)
     rk = _rk(twin)
     real = build_design(exp.runs, exp.processed, twin, exp.imu, windows, rk)
-    real_views = compute_views(real, exp.processed)
+    real_views = compute_views(real, exp.processed, twin.noise)  # Allan levels against the twin's own noise
     tm["load_fit_twin"] = time.time() - t0
     say(f"{device_id}: {len(exp.runs)} runs loaded and fitted ({tm['load_fit_twin']:.1f} s); "
         f"{replicates} base replicates ...")

@@ -1,8 +1,13 @@
 """Replicates of the twin driven by the recorded inputs, pushed through the same chain, in parallel processes.
 
 Each replicate r of a device: every run simulated by ``twin.simulate_run_imu`` with the seed (seed, r, run),
-processed by ``experiment.process_run`` (segmentation and library fits), then turned into a ``Design`` and its
-views. Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
+processed by ``experiment.process_run`` (segmentation and library fits), the replicate's **own twin** fitted from it
+by ``twin.fit_twin`` (the estimator the real data went through), then turned into a ``Design`` against that own twin
+and its views. A parametric-bootstrap check compares T(y, theta_hat(y)) on the real data with
+T(y_r, theta_hat(y_r)) on each replicate ([EFRON1993] ch. 6: the bootstrap repeats every
+data-dependent step); computing the replicate's statistic against the real data's theta_hat instead leaves out the
+twin's estimation error (the real residuals are taken against parameters fitted to them, a replicate's were not).
+Replicates run in worker processes (``concurrent.futures``, fork start: the recorded inputs are shared
 copy-on-write, never pickled); results depend only on (seed, r), so they are identical for any worker count.
 The plan kinematics and flicker spectral shapes are cached across replicates (bit-identical to computing them).
 """
@@ -19,8 +24,8 @@ import numpy as np
 from assets_lib.sim.kinematics import kinematics_cache
 from assets_lib.sim.noise import flicker_shape_cache
 from assets_lib.simreal.design import Design, build_design
-from assets_lib.simreal.experiment import process_run
-from assets_lib.simreal.twin import TwinModel, simulate_run_imu
+from assets_lib.simreal.experiment import DeviceExperiment, process_run
+from assets_lib.simreal.twin import TwinModel, fit_twin, simulate_run_imu
 from assets_lib.simreal.views import compute_views
 
 _STATE: dict = {}
@@ -46,8 +51,15 @@ def one_replicate(r: int, seed: int, twin: TwinModel, runs, windows, rk) -> Repl
         imu = simulate_run_imu(twin, inp, rng)
         imus[inp.run_id] = imu
         proc[inp.run_id] = process_run(inp, imu)
-    d = build_design(runs, proc, twin, imus, windows, rk)
-    return Replicate(r, d, compute_views(d, proc))
+    own = refit_like_real(twin, runs, imus, proc)
+    d = build_design(runs, proc, own, imus, windows, np.array([p.k for p in own.noise]))
+    return Replicate(r, d, compute_views(d, proc, own.noise))
+
+
+def refit_like_real(twin: TwinModel, runs, imus: dict, proc: dict) -> TwinModel:
+    """The replicate's own base twin: ``fit_twin`` on the replicate's processed runs (the real data's estimator
+    path), keeping ``twin``'s device id."""
+    return fit_twin(DeviceExperiment(twin.device_id, "", tuple(runs), imus, proc))
 
 
 def _worker(args):

@@ -4,7 +4,8 @@ Sensor model of docs/design.md ([SEED000] eq. 1-2): gyro y = M_g omega + b + G f
 f (Kc f); noise from the IEEE 952 Annex C terms. Every coefficient comes from the library fits of the device's
 own runs (``fit_gyro_rate`` rows for M_g, ``fit_gyro_static`` for G, ``fit_accel_multiposition`` for M_a, K2,
 Kc), per power cycle, the bias per run (weighted mean of the run's plateau residuals), the noise of each channel
-from segmentation's pooled Allan model of the device's longest static record (else the median over runs), and
+from segmentation's pooled Allan models of the runs (median of Q, N, K; B from the mean of their flicker
+variance estimates), and
 the output rails where the real data pile up at a full-scale value. A replicate of a run (``simulate_run_imu``)
 uses the run's recorded time stamps, temperature log and table motion; the twin's effects (``effects.py``) are
 added before saturation and quantization, like the simulator's effect chain.
@@ -273,19 +274,26 @@ def _noise(exp: DeviceExperiment) -> tuple:
     # median over every run's pooled plateau model: short plateaus bound the taus, so a slow deterministic drift
     # of the long static record (temperature, warm-up) does not leak into the twin's noise (measured: with the
     # static record alone a hidden temperature bias inflated K and hid itself from the plateau views)
+    # B: the mean over runs of each run's flicker variance estimate (segmentation's ``{ch}_flicker_b``: the B term
+    # also when the SEM model selection left it out), not the median of the selected B: a short run often reads B
+    # as exactly 0, and the median of such runs was 0 where the truth is not (measured on the default archive's
+    # TAC-002: gyro B 0 against a true 3.9e-6 rad/s, accel_z 0 against 1.96e-4 m/s^2; replicates without bias
+    # instability left the real plateau residuals and the long-tau Allan bands over-dispersed, which at R = 100
+    # made the null device significant)
     src = list(exp.runs)
     out = []
     for j, ch in enumerate(CHANNELS):
-        vals = []
+        vals, fl = [], []
         for r in src:
             fit = exp.processed[r.run_id].noise_fits.get(ch)
             if fit is None:
                 continue
-            b = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
-            vals.append((float(np.sqrt(np.median(fit.q2))), float(np.sqrt(np.median(fit.n2))), b,
+            fl.append(max(fit.flicker_avar, getattr(fit, "flicker_avar_estimate", 0.0), 0.0))
+            vals.append((float(np.sqrt(np.median(fit.q2))), float(np.sqrt(np.median(fit.n2))),
                          float(np.sqrt(max(fit.k2, 0.0)))))
-        v = np.median(np.array(vals), axis=0) if vals else np.zeros(4)
-        out.append(AllanParams(q=v[0], n=v[1], b=v[2], k=v[3]))
+        v = np.median(np.array(vals), axis=0) if vals else np.zeros(3)
+        b = float(np.sqrt(np.mean(fl) * np.pi / (2 * np.log(2)))) if fl else 0.0
+        out.append(AllanParams(q=v[0], n=v[1], b=b, k=v[2]))
     return tuple(out)
 
 
