@@ -57,7 +57,9 @@ def test_new_module_changes_no_version_and_an_edit_changes_only_its_stages(tmp_p
 
 @pytest.mark.slow
 def test_empty_module_leaves_reprocess_with_nothing_to_do(tmp_path):
-    """The real commands on a copy of the code: ``imulab run``, add an empty module, ``imulab reprocess --dry-run``."""
+    """The real commands on a copy of the code: ``imulab run --certificates`` (every stage materialized: a plain run
+    leaves the certificates for ``imulab certificates``, and reprocess, which covers every stage, would render them),
+    add an empty module, ``imulab reprocess --dry-run``."""
     sys.path.insert(0, str(REPO / "tests"))
     from prod_helpers import write_realistic_archive
 
@@ -71,7 +73,7 @@ def test_empty_module_leaves_reprocess_with_nothing_to_do(tmp_path):
                              env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
         return res.returncode, res.stdout + res.stderr
 
-    rc, out = cli("run")
+    rc, out = cli("run", "--certificates")
     assert rc == 0, out
     (code / "assets_lib" / "sim" / "new_effect.py").write_text("")
     rc, out = cli("reprocess", "--dry-run")
