@@ -34,6 +34,11 @@ class PooledAllanFit:
     #: the selection did not admit into the SEM model (an undetected B is not a zero one: the run mean still wanders)
     flicker_avar_estimate: float = 0.0
 
+    @property
+    def flicker_avar_best(self) -> float:
+        """(2 ln 2 / pi) B^2 ([IEEE952] C.3) to carry on: the selected term, else the kept-B estimate, never < 0."""
+        return max(self.flicker_avar, self.flicker_avar_estimate, 0.0)
+
     def avar(self, k: int, tau_s: float | np.ndarray) -> np.ndarray:
         """[IEEE952] eq. C.23 for plateau k: 3Q^2/tau^2 + N^2/tau + (2 ln2/pi) B^2 + K^2 tau / 3."""
         tau = np.asarray(tau_s, dtype=float)

@@ -288,7 +288,7 @@ def _noise(exp: DeviceExperiment) -> tuple:
             fit = exp.processed[r.run_id].noise_fits.get(ch)
             if fit is None:
                 continue
-            fl.append(max(fit.flicker_avar, getattr(fit, "flicker_avar_estimate", 0.0), 0.0))
+            fl.append(fit.flicker_avar_best)
             vals.append((float(np.sqrt(np.median(fit.q2))), float(np.sqrt(np.median(fit.n2))),
                          float(np.sqrt(max(fit.k2, 0.0)))))
         v = np.median(np.array(vals), axis=0) if vals else np.zeros(3)

@@ -272,7 +272,7 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     for ch, fit in noise_fits.items():  # [IEEE952] C.3: flicker plateau (2 ln2 / pi) B^2 -> B, shared by the run
         # the B estimate also when the SEM model selection left it out (too weak within plateaus): the fits'
         # correlated-noise GLS needs the run mean's 1/f wander (accel bias z sd 1.3-1.7 with B read as 0)
-        fl = max(fit.flicker_avar, getattr(fit, "flicker_avar_estimate", 0.0), 0.0)
+        fl = fit.flicker_avar_best
         df[f"{ch}_flicker_b"] = float(np.sqrt(fl * np.pi / (2 * np.log(2))))
     return SegmentationResult(df, method, alignment, detection, shifts, tuple(unmatched), window_step, keep,
                               noise_fits, tuple(warnings))
