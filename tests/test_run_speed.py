@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from prod_helpers import SHM, write_realistic_archive
+from prod_helpers import write_realistic_archive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -189,15 +189,28 @@ def test_outputs_say_where_the_certificates_are_or_how_to_render_them(tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 # real processes: the unchanged archive, the reprocess lock
 # ---------------------------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    root = Path(tmp_path_factory.mktemp("speed")) if SHM is None else Path(
-        __import__("tempfile").mkdtemp(prefix="imulab-speed-", dir=SHM))
-    write_realistic_archive(root / "archive")
-    yield root
-    import shutil
+BACKGROUND_JOB = True  # first_runs(<work dir>) in a second process, started when collection finishes
 
-    shutil.rmtree(root, ignore_errors=True)
+
+def first_runs(root: Path) -> None:
+    """Two realistic archives (``archive``, ``archive-new``) and a first ``imulab run`` on each (data dirs ``data``,
+    ``data-new``); their exit statuses and outputs in ``root / "first_runs.json"``."""
+    runs = {}
+    for archive, data in (("archive", "data"), ("archive-new", "data-new")):
+        write_realistic_archive(root / archive)
+        runs[archive] = _finish(_imulab("run", "--archive", root / archive, "--data-dir", root / data))
+    (root / "first_runs.json").write_text(json.dumps(runs))
+
+
+@pytest.fixture(scope="module")
+def workspace(background_job):
+    """This module's background job: two archives after their first ``imulab run``."""
+    return background_job
+
+
+def _first_run(workspace: Path, archive: str) -> tuple[int, str]:
+    rc, out = json.loads((workspace / "first_runs.json").read_text())[archive]
+    return rc, out
 
 
 @pytest.mark.slow
@@ -205,7 +218,7 @@ def test_unchanged_archive_answers_without_importing_dagster(workspace):
     """After a finished run, a second ``imulab run`` on the unchanged archive plans from the store and the
     planning cache: no Dagster import, no science import, nothing launched, the same outputs and summary."""
     archive, data = workspace / "archive", workspace / "data"
-    rc, first = _finish(_imulab("run", "--archive", archive, "--data-dir", data))
+    rc, first = _first_run(workspace, "archive")
     assert rc == 0, first
     rc, again = _finish(_imulab("run", "--archive", archive, "--data-dir", data, python_flags=("-X", "importtime")))
     assert rc == 0, again
@@ -258,8 +271,7 @@ def test_a_new_run_in_the_archive_takes_the_dagster_path(workspace):
     from assets_lib.sim.simulator import write_run
 
     archive, data = workspace / "archive-new", workspace / "data-new"
-    write_realistic_archive(archive)
-    rc, out = _finish(_imulab("run", "--archive", archive, "--data-dir", data))
+    rc, out = _first_run(workspace, "archive-new")
     assert rc == 0, out
     write_run(small_run("TST-A", "tactical", "pc09-pos24"), archive)  # a short run: its plateau gate fails (exit 1)
     rc, out = _finish(_imulab("run", "--archive", archive, "--data-dir", data))
@@ -334,3 +346,9 @@ def test_summary_counts_each_invalid_record_with_its_reasons(tmp_path):
                                                           for k, v in rec.items()})
     assert record_warnings(st) == ["record DEV/pc01-rate: invalid (a; b)",
                                    "record DEV/pc02-rate: invalid (no reason given)"]
+
+
+if __name__ == "__main__":  # the background job
+    work = Path(sys.argv[1])
+    work.mkdir(parents=True)
+    first_runs(work)

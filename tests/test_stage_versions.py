@@ -4,6 +4,7 @@ valid; changing a module a stage imports makes that stage, and only the stages t
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -55,32 +56,43 @@ def test_new_module_changes_no_version_and_an_edit_changes_only_its_stages(tmp_p
     assert "ingested_run" not in changed and "fleet_drift" not in changed
 
 
-@pytest.mark.slow
-def test_empty_module_leaves_reprocess_with_nothing_to_do(tmp_path):
-    """The real commands on a copy of the code: ``imulab run --certificates`` (every stage materialized: a plain run
-    leaves the certificates for ``imulab certificates``, and reprocess, which covers every stage, would render them),
-    add an empty module, ``imulab reprocess --dry-run``."""
-    sys.path.insert(0, str(REPO / "tests"))
+BACKGROUND_JOB = True  # full_run_on_code_copy(<work dir>) in a second process, started when collection finishes
+
+
+def _cli(work: Path, *args) -> tuple[int, str]:
+    """An imulab command run on the code copy under ``work``, with its archive and data dir."""
+    env = {**os.environ, "PYTHONPATH": str(work / "code"), "PYTHONWARNINGS": "ignore"}
+    res = subprocess.run([sys.executable, "-m", "imulab.cli", *args, "--archive", str(work / "landing"), "--data-dir",
+                          str(work / "data")], env=env, cwd=work, capture_output=True, text=True, timeout=600, check=False)
+    return res.returncode, res.stdout + res.stderr
+
+
+def full_run_on_code_copy(work: Path) -> None:
+    """A copy of the code, a realistic archive and ``imulab run --certificates`` on it (every stage materialized: a
+    plain run leaves the certificates for ``imulab certificates``, and reprocess, which covers every stage, would
+    render them); the run's exit status and output in ``work / "run.json"``."""
     from prod_helpers import write_realistic_archive
 
-    code = _copy_sources(tmp_path / "code", ("assets_lib", "raw_schemas", "pipelines", "imulab"))
-    landing, data = tmp_path / "landing", tmp_path / "data"
-    write_realistic_archive(landing)
-    env = {**os.environ, "PYTHONPATH": str(code), "PYTHONWARNINGS": "ignore"}
+    _copy_sources(work / "code", ("assets_lib", "raw_schemas", "pipelines", "imulab"))
+    write_realistic_archive(work / "landing")
+    rc, out = _cli(work, "run", "--certificates")
+    (work / "run.json").write_text(json.dumps({"rc": rc, "out": out}))
 
-    def cli(*args):
-        res = subprocess.run([sys.executable, "-m", "imulab.cli", *args, "--archive", str(landing), "--data-dir", str(data)],
-                             env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600, check=False)
-        return res.returncode, res.stdout + res.stderr
 
-    rc, out = cli("run", "--certificates")
-    assert rc == 0, out
+@pytest.mark.slow
+def test_empty_module_leaves_reprocess_with_nothing_to_do(background_job):
+    """The real commands on a copy of the code: ``imulab run --certificates`` (this module's background job,
+    ``full_run_on_code_copy``), add an empty module, ``imulab reprocess --dry-run``."""
+    work = background_job
+    code = work / "code"
+    run = json.loads((work / "run.json").read_text())
+    assert run["rc"] == 0, run["out"]
     (code / "assets_lib" / "sim" / "new_effect.py").write_text("")
-    rc, out = cli("reprocess", "--dry-run")
+    rc, out = _cli(work, "reprocess", "--dry-run")
     assert rc == 0 and "nothing to reprocess" in out and " 0 stale" in out, out
     with open(code / "assets_lib" / "calibration" / "rate_fit.py", "a") as f:  # the check can fail
         f.write("# an edit\n")
-    rc, out = cli("reprocess", "--dry-run")
+    rc, out = _cli(work, "reprocess", "--dry-run")
     # the stages of the module that imports rate_fit (assets_lib/stages/calibration.py) and their downstreams
     assert rc == 0 and "gyro_rate_fit: 1 stale" in out and "plateaus: 2 stale" in out, out
     assert "ingested_run:" not in out and "code version 2+src" not in out, out
@@ -104,3 +116,9 @@ def test_import_scan_walks_statements_like_ast_walk():
         fast = [ast.dump(n) for n in _statements(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
         assert sorted(fast) == sorted(full)
     assert len([n for n in _statements(trees[0]) if isinstance(n, (ast.Import, ast.ImportFrom))]) == 10
+
+
+if __name__ == "__main__":  # the background job
+    work = Path(sys.argv[1])
+    work.mkdir(parents=True)
+    full_run_on_code_copy(work)
