@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -44,7 +45,7 @@ class BackgroundJob:
         self.done = threading.Event()
         self.cancelled = False
         self.lock = threading.Lock()
-        self.elapsed_s = self.waited_s = None
+        self.elapsed_s = self.waited_s = self.cpu_s = None
         shm = Path("/dev/shm")
         self.workdir = Path(tempfile.mkdtemp(prefix=f"imulab-bg-{self.module_file.stem}-",
                                              dir=shm if shm.is_dir() and os.access(shm, os.W_OK) else None))
@@ -62,8 +63,18 @@ class BackgroundJob:
                 self.started = time.monotonic()
                 with open(self.log, "wb") as log:
                     self.proc = subprocess.Popen([sys.executable, str(self.module_file), str(self.workdir / "work")],
-                                                 cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
-            self.proc.wait()
+                                                 cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
+                                                 start_new_session=True)  # its own process group, killed as one
+            if hasattr(os, "wait4"):  # the job's CPU time, its own and its children's
+                try:
+                    _, status, usage = os.wait4(self.proc.pid, 0)
+                except ChildProcessError:  # reaped elsewhere
+                    self.proc.wait()
+                else:
+                    self.proc.returncode = os.waitstatus_to_exitcode(status)
+                    self.cpu_s = usage.ru_utime + usage.ru_stime
+            else:
+                self.proc.wait()
             self.elapsed_s = time.monotonic() - self.started
         finally:
             self.done.set()
@@ -83,9 +94,12 @@ class BackgroundJob:
         with self.lock:
             self.cancelled = True
         if self.proc is not None:
-            if self.proc.poll() is None:
-                self.proc.kill()
-            self.proc.wait()
+            if self.proc.returncode is None:
+                try:
+                    os.killpg(self.proc.pid, signal.SIGKILL)  # the job and the processes it started
+                except (ProcessLookupError, PermissionError, AttributeError):
+                    self.proc.kill()
+            self.done.wait(timeout=60)  # the waiting thread reaps it
         shutil.rmtree(self.workdir, ignore_errors=True)
 
 
@@ -111,8 +125,9 @@ def pytest_collection_finish(session):
 def pytest_terminal_summary(terminalreporter):
     for job in _JOBS.values():
         if job.elapsed_s is not None:
+            cpu = "" if job.cpu_s is None else f" ({job.cpu_s:.1f} s CPU)"
             waited = "" if job.waited_s is None else f", its tests waited {job.waited_s:.1f} s for it"
-            terminalreporter.write_line(f"background job {job.module_file.name}: {job.elapsed_s:.1f} s{waited}")
+            terminalreporter.write_line(f"background job {job.module_file.name}: {job.elapsed_s:.1f} s{cpu}{waited}")
 
 
 def pytest_sessionfinish(session):
