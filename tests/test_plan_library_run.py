@@ -4,13 +4,12 @@ or the run fails alone and the summary names it with its reason. Dwell times are
 revolutions are kept, so the seed 000 full-revolution plan keeps its length), to 0.3 for the short quick and
 tumble plans, and the static record to 300 s.
 
-The archive and its ``imulab run`` are this module's background job (tests/conftest.py): ``run_library`` runs in a
-second process from the start of the session, and the test makes its assertions on the store and summary it left."""
+The archive and its ``imulab run`` are this module's background job ``run_library`` (tests/conftest.py): it runs in
+a second process from the start of the session, and the test makes its assertions on the store and summary it left."""
 
 from __future__ import annotations
 
 import json
-import sys
 import warnings
 from pathlib import Path
 
@@ -22,7 +21,7 @@ warnings.filterwarnings("ignore")
 DEVICES = (("NAV-001", "navigation"), ("TAC-002", "tactical"), ("CON-003", "consumer"))
 RESULT_STAGE = {"rate": "gyro_rate_fit", "multiposition": "accel_multiposition_fit",
                 "tumble": "accel_multiposition_fit", "static": "allan_deviation"}
-BACKGROUND_JOB = True  # run_library(<work dir>) in a second process, started when collection finishes
+BACKGROUND_JOBS = ("run_library",)  # run in a second process from the start of the session (tests/conftest.py)
 
 
 def run_library(d: Path) -> None:
@@ -56,7 +55,7 @@ def run_library(d: Path) -> None:
 
 @pytest.mark.slow
 def test_every_plan_every_grade_is_fitted_or_fails_alone_with_its_reason(background_job):
-    d = background_job
+    d = background_job("run_library")
     result = json.loads((d / "result.json").read_text())
     runs = {k: tuple(v) for k, v in result["runs"].items()}
     out = result["output"]
@@ -81,9 +80,3 @@ def test_every_plan_every_grade_is_fitted_or_fails_alone_with_its_reason(backgro
         assert any(k.startswith(dev) for k in fitted)
     assert len(fitted) >= len(runs) - len(failed) and not failed, failed
 
-
-if __name__ == "__main__":  # the background job
-    warnings.filterwarnings("ignore")
-    work = Path(sys.argv[1])
-    work.mkdir(parents=True)
-    run_library(work)

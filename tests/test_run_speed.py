@@ -189,7 +189,7 @@ def test_outputs_say_where_the_certificates_are_or_how_to_render_them(tmp_path):
 # ---------------------------------------------------------------------------------------------------------------
 # real processes: the unchanged archive, the reprocess lock
 # ---------------------------------------------------------------------------------------------------------------
-BACKGROUND_JOB = True  # first_runs(<work dir>) in a second process, started when collection finishes
+BACKGROUND_JOBS = ("first_runs",)  # run in a second process from the start of the session (tests/conftest.py)
 
 
 def first_runs(root: Path) -> None:
@@ -205,7 +205,7 @@ def first_runs(root: Path) -> None:
 @pytest.fixture(scope="module")
 def workspace(background_job):
     """This module's background job: two archives after their first ``imulab run``."""
-    return background_job
+    return background_job("first_runs")
 
 
 def _first_run(workspace: Path, archive: str) -> tuple[int, str]:
@@ -347,8 +347,3 @@ def test_summary_counts_each_invalid_record_with_its_reasons(tmp_path):
     assert record_warnings(st) == ["record DEV/pc01-rate: invalid (a; b)",
                                    "record DEV/pc02-rate: invalid (no reason given)"]
 
-
-if __name__ == "__main__":  # the background job
-    work = Path(sys.argv[1])
-    work.mkdir(parents=True)
-    first_runs(work)

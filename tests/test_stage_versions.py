@@ -56,14 +56,15 @@ def test_new_module_changes_no_version_and_an_edit_changes_only_its_stages(tmp_p
     assert "ingested_run" not in changed and "fleet_drift" not in changed
 
 
-BACKGROUND_JOB = True  # full_run_on_code_copy(<work dir>) in a second process, started when collection finishes
+BACKGROUND_JOBS = ("full_run_on_code_copy",)  # in a second process from the start of the session (tests/conftest.py)
 
 
 def _cli(work: Path, *args) -> tuple[int, str]:
     """An imulab command run on the code copy under ``work``, with its archive and data dir."""
     env = {**os.environ, "PYTHONPATH": str(work / "code"), "PYTHONWARNINGS": "ignore"}
-    res = subprocess.run([sys.executable, "-m", "imulab.cli", *args, "--archive", str(work / "landing"), "--data-dir",
-                          str(work / "data")], env=env, cwd=work, capture_output=True, text=True, timeout=600, check=False)
+    res = subprocess.run([sys.executable, "-m", "imulab.cli", *args, "--archive", str(work / "landing"),
+                          "--data-dir", str(work / "data")], env=env, cwd=work, capture_output=True, text=True,
+                         timeout=600, check=False)
     return res.returncode, res.stdout + res.stderr
 
 
@@ -83,7 +84,7 @@ def full_run_on_code_copy(work: Path) -> None:
 def test_empty_module_leaves_reprocess_with_nothing_to_do(background_job):
     """The real commands on a copy of the code: ``imulab run --certificates`` (this module's background job,
     ``full_run_on_code_copy``), add an empty module, ``imulab reprocess --dry-run``."""
-    work = background_job
+    work = background_job("full_run_on_code_copy")
     code = work / "code"
     run = json.loads((work / "run.json").read_text())
     assert run["rc"] == 0, run["out"]
@@ -117,8 +118,3 @@ def test_import_scan_walks_statements_like_ast_walk():
         assert sorted(fast) == sorted(full)
     assert len([n for n in _statements(trees[0]) if isinstance(n, (ast.Import, ast.ImportFrom))]) == 10
 
-
-if __name__ == "__main__":  # the background job
-    work = Path(sys.argv[1])
-    work.mkdir(parents=True)
-    full_run_on_code_copy(work)
