@@ -2,7 +2,10 @@
 - handles a whole partition range in one run (``BackfillPolicy.single_run``: one run per partition costs seconds),
 - computes each partition with ``assets_lib.stages.engine.compute_partition`` (the one way; versions derived from
   code and inputs, unchanged work reused, outputs written atomically and never overwritten),
-- returns a ``MaterializeResult`` with a table of per-partition outcomes (and plots when a single partition ran).
+- records each partition's outcome (status, version, a few scalars) on that partition's materialization, and
+  returns a ``MaterializeResult`` with the run's counts and errors (and plots when a single partition ran). A
+  range run yields one materialization per partition, each carrying the run-level metadata: a table of every
+  partition there was copied into every event (quadratic in the batch size).
 A partition that fails is logged with its reason and does not stop the others.
 """
 
@@ -29,13 +32,21 @@ def _scalars(d: dict) -> dict:
     return {k: v for k, v in d.items() if isinstance(v, (int, float, str, bool))}
 
 
-def outcomes_metadata(spec: StageSpec, outcomes: list[Outcome], store: VersionedStore) -> dict:
-    rows = [{"partition": o.key, "status": o.describe()[:200], "version": o.version or "", **_scalars(o.summary)}
-            for o in outcomes]
+def partition_metadata(o: Outcome) -> dict:
+    """What one partition's materialization shows: its outcome, version and the stage's scalars."""
+    return {"status": o.describe()[:200], "version": o.version or "", **_scalars(o.summary)}
+
+
+def outcomes_metadata(spec: StageSpec, outcomes: list[Outcome], store: VersionedStore, table: bool = True) -> dict:
+    """The run-level metadata; with ``table``, a table of every partition's outcome (unpartitioned assets: the
+    one materialization is the run's)."""
     errors = [f"{o.key}: {o.reason}" for o in outcomes if o.failed]
-    md = pd.DataFrame(rows).to_markdown(index=False) if rows else "(no partitions)"
-    metadata: dict = {
-        "partitions": dg.MetadataValue.md(md),
+    metadata: dict = {}
+    if table:
+        rows = [{"partition": o.key, **partition_metadata(o)} for o in outcomes]
+        metadata["partitions"] = dg.MetadataValue.md(pd.DataFrame(rows).to_markdown(index=False) if rows
+                                                     else "(no partitions)")
+    metadata |= {
         "written": sum(o.status == "written" for o in outcomes),
         "reused": sum(o.status == "reused" for o in outcomes),
         "errors": len(errors),
@@ -58,7 +69,12 @@ def run_stage(context, graph: StageGraph, spec: StageSpec, store: VersionedStore
             context.log.error(f"{spec.name} failed for {key}: {o.reason}")
         outcomes.append(o)
     digest = hashlib.sha256(json.dumps(sorted((o.key, o.version or "") for o in outcomes)).encode()).hexdigest()[:20]
-    return dg.MaterializeResult(metadata=outcomes_metadata(spec, outcomes, store), data_version=dg.DataVersion(digest))
+    partitioned = spec.level != "fleet"
+    if partitioned:
+        for o in outcomes:
+            context.add_asset_metadata(partition_metadata(o), partition_key=o.key)
+    return dg.MaterializeResult(metadata=outcomes_metadata(spec, outcomes, store, table=not partitioned),
+                                data_version=dg.DataVersion(digest))
 
 
 def _asset_kwargs(level: str) -> dict:

@@ -14,6 +14,12 @@
   power loss can lose the last events, never the parquet store, which is fsynced) and one idle reader per
   database stays open while the process runs, so closing an event's connection no longer checkpoints (SQLite's
   automatic checkpoint every 1000 pages still runs). Nothing else about the storage changes.
+- ``PooledSqliteEventLogStorage``: Dagster's SQLite event log storage also builds a new SQLAlchemy engine for every
+  connection (two per asset event: the run's database and the index); on a fresh run that was most of the CPU an
+  event costs (each partition's materialization and planned events). The instance opened here keeps one engine,
+  with one open connection, per database (the index and the last few runs), under the storage's own lock; the
+  databases, their schema and every statement are Dagster's, so ``dagster dev`` and other processes read the
+  same files as before.
 """
 
 from __future__ import annotations
@@ -24,9 +30,15 @@ import socket
 import sqlite3
 import threading
 from collections import OrderedDict
+from contextlib import contextmanager
 from pathlib import Path
 
 import dagster as dg
+from dagster._core.instance import InstanceType
+from dagster._core.instance.factory import create_instance_from_ref
+from dagster._core.instance.ref import InstanceRef
+from dagster._core.storage.event_log.sqlite.sqlite_event_log import SqliteEventLogStorage
+from dagster._core.storage.sqlite import SQLITE_BUSY_TIMEOUT_SECONDS
 from filelock import FileLock
 
 # the run lock lives in a module without Dagster (an unchanged archive answers without importing it); re-exported
@@ -109,6 +121,73 @@ def tune_sqlite(home: str | os.PathLike) -> None:
         _LISTENING = True
 
 
+class PooledSqliteEventLogStorage(SqliteEventLogStorage):
+    """Dagster's SQLite event log storage with one engine (one open connection) per database instead of one per
+    connection (module docstring). At most ``MAX_ENGINES`` databases are held open (least recently used closed
+    first); ``dispose`` and ``wipe`` close them all."""
+
+    MAX_ENGINES = 4
+
+    def __init__(self, base_dir: str, inst_data=None):
+        self._engines: OrderedDict = OrderedDict()
+        super().__init__(base_dir, inst_data)
+
+    @contextmanager
+    def _connect(self, shard: str):
+        from sqlalchemy import create_engine
+        from sqlalchemy.pool import StaticPool
+
+        with self._db_lock:  # one user of a connection at a time (the event log watcher runs in a thread)
+            engine = self._engines.get(shard)
+            if engine is None:
+                engine = create_engine(self.conn_string_for_shard(shard), poolclass=StaticPool,
+                                       connect_args={"timeout": SQLITE_BUSY_TIMEOUT_SECONDS, "check_same_thread": False})
+                if shard not in self._initialized_dbs:
+                    self._initdb(engine)
+                    self._initialized_dbs.add(shard)
+                self._engines[shard] = engine
+                while len(self._engines) > self.MAX_ENGINES:
+                    self._engines.popitem(last=False)[1].dispose()
+            else:
+                self._engines.move_to_end(shard)
+            with engine.connect() as conn:
+                with conn.begin():
+                    yield conn
+
+    def _close_engines(self) -> None:
+        with self._db_lock:
+            while self._engines:
+                self._engines.popitem()[1].dispose()
+
+    def wipe(self) -> None:
+        self._close_engines()
+        super().wipe()
+
+    def dispose(self) -> None:
+        self._close_engines()
+        super().dispose()
+
+
+def _instance_with_pooled_events(home: Path) -> dg.DagsterInstance:
+    """The instance ``DagsterInstance.from_config(home)`` builds, its SQLite event log storage (the default; any
+    other configured storage is kept as is) replaced by a ``PooledSqliteEventLogStorage`` on the same folder."""
+    ref = InstanceRef.from_dir(str(home))
+    unified = ref.storage
+    events = unified.event_log_storage if unified else ref.event_storage
+    if type(events) is not SqliteEventLogStorage or ref.custom_instance_class is not None:
+        return create_instance_from_ref(ref)
+    pooled = PooledSqliteEventLogStorage(events._base_dir, inst_data=events.inst_data)  # noqa: SLF001
+    return dg.DagsterInstance(
+        instance_type=InstanceType.PERSISTENT,
+        local_artifact_storage=ref.local_artifact_storage,
+        run_storage=unified.run_storage if unified else ref.run_storage,
+        event_storage=pooled,
+        schedule_storage=unified.schedule_storage if unified else ref.schedule_storage,
+        compute_log_manager=None, scheduler=ref.scheduler, run_coordinator=None, run_launcher=None,
+        settings=ref.settings, secrets_loader=ref.secrets_loader, defs_state_storage=ref.defs_state_storage,
+        ref=ref)
+
+
 def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterInstance:
     """A persistent instance in ``dagster_home`` (or $DAGSTER_HOME), so ``dagster dev`` shows the same runs; its
     configuration and storage schemas are created once, under a file lock."""
@@ -124,7 +203,7 @@ def open_instance(dagster_home: str | os.PathLike | None = None) -> dg.DagsterIn
             tmp = home / f".dagster.yaml.{os.getpid()}"
             tmp.write_text("telemetry:\n  enabled: false\n")
             os.replace(tmp, cfg)
-        instance = dg.DagsterInstance.from_config(str(home))
+        instance = _instance_with_pooled_events(home)
         # touch every storage while holding the lock: schemas are created (and stamped) by exactly one process
         instance.get_runs(limit=1)
         instance.get_dynamic_partitions("captures")

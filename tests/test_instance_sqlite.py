@@ -35,12 +35,15 @@ def test_instance_databases_are_tuned_and_keep_every_event(tmp_path):
         with storage.run_connection(res.run_id) as conn:
             assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 1
         kept = [p for p in inst_mod._KEEP_OPEN if p.startswith(str(home.resolve()))]
-        assert any(p.endswith("index.db") for p in kept) and any(res.run_id in p for p in kept)
-        # Dagster closed its connections; the reader kept the WAL instead of a checkpoint at each close
-        run_db = next(p for p in kept if res.run_id in p)
-        assert Path(run_db + "-wal").exists()
+        assert any(p.endswith("index.db") for p in kept)
+        # the event log keeps one engine (one open connection) per database, the run's among them, instead of
+        # building an engine per event; open, the database keeps its WAL instead of a checkpoint at each close
+        assert isinstance(storage, inst_mod.PooledSqliteEventLogStorage)
+        assert res.run_id in storage._engines and "index" in storage._engines
+        assert Path(storage.path_for_shard(res.run_id) + "-wal").exists()
         events = instance.all_logs(res.run_id)
         assert {"STEP_SUCCESS", dg.DagsterEventType.RUN_SUCCESS.value} <= {e.dagster_event.event_type_value for e in events if e.is_dagster_event}
+    assert not storage._engines  # closed with the instance
     assert release_sqlite(home) == len(kept)
     assert not [p for p in inst_mod._KEEP_OPEN if p.startswith(str(home.resolve()))]
     # reopened from disk (another process would see the same): every event is there

@@ -55,7 +55,7 @@ def _plausible_check(asset: str):
         for k in _keys(context, st, asset):
             grade = st.read_meta("ingested_run", k).get("grade", "consumer")
             c = st.read(asset, k, "coefficients")
-            for _, r in c[c.observable.astype(bool)].iterrows():
+            for r in c[c.observable.astype(bool)].itertuples(index=False):
                 why = implausible(grade, r.sensor, r.coefficient, float(r.value))
                 if why:
                     bad.append(f"{k} axis {r.axis}: {why}")

@@ -250,12 +250,13 @@ def _clip_to_rails(r_tab: np.ndarray, g_proj: np.ndarray, shortfall: float = 0.9
     return np.clip(r_tab, clip_lo, clip_hi)
 
 
-def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: SegmentationConfig = SegmentationConfig()
-                 ) -> ClockAlignment:
+def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: SegmentationConfig = SegmentationConfig(),
+                 resolution: list | None = None) -> ClockAlignment:
     """[SEED003] time alignment: offset (t_table = t_imu + offset) maximising corr(table rate, gyro . u_b), parabolic peak.
 
     Falls back to matching step centres (table ``step_index`` runs vs detected quiet intervals) when the table
     rate carries no signal (e.g. a position plan whose table log shows no rotation) or correlates poorly.
+    ``resolution``: the channels' quantization steps when known (``detect_quiet_intervals``).
     """
     cfg = config
     t_imu = imu["time_s"].to_numpy(dtype=float)
@@ -298,7 +299,8 @@ def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: Segmentat
                     drift, drift_se = d * 1e6, d_se * 1e6
             return ClockAlignment(off, se, "xcorr_table_rate_parabolic+ls", peak, drift, drift_se, int(t_imu.size))
     # fallback: step centres
-    det = detect_quiet_intervals(t_imu, gyro, imu[list(ACCEL_COLUMNS)].to_numpy(dtype=float), cfg.detector)
+    det = detect_quiet_intervals(t_imu, gyro, imu[list(ACCEL_COLUMNS)].to_numpy(dtype=float), cfg.detector,
+                                 resolution)
     steps = table_steps(table)
     if det.intervals.empty or not steps:
         return ClockAlignment(0.0, np.nan, "none", np.nan, n_samples=int(t_imu.size))

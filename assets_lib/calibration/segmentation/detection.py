@@ -55,7 +55,8 @@ def _robust_center_scale(x: np.ndarray, res: np.ndarray) -> tuple[np.ndarray, np
 
 
 def detect_quiet_intervals(
-    t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray | None = None, config: DetectorConfig = DetectorConfig()
+    t_s: np.ndarray, gyro: np.ndarray, accel: np.ndarray | None = None, config: DetectorConfig = DetectorConfig(),
+    resolution: list | None = None,
 ) -> QuietDetection:
     """imu_tk static detector ([TEDALDI2014] sec. IV-A): moving variance vs k x noise floor, min duration.
 
@@ -64,6 +65,10 @@ def detect_quiet_intervals(
     ``floor_quantile`` quantile of each statistic. Edges are then refined sample by sample: a quiet run ends where a
     sample leaves the run's median by more than ``edge_k_sigma`` robust sigmas on any axis (within one window of
     the coarse edge). Runs separated by less than ``merge_gap_s`` with the same median are merged.
+
+    ``resolution``: the quantization steps of the gyro then accelerometer channels (``estimate_resolution`` of each
+    column), when the caller has them already (``segment_run``); used only with ``center`` "none", where they are
+    the steps of the very values the detector reads.
     """
     cfg = config
     t = np.asarray(t_s, dtype=float)
@@ -77,27 +82,31 @@ def detect_quiet_intervals(
         a = None if a is None else a - np.median(a, axis=0)
     elif cfg.center != "none":
         raise ValueError(f"center must be 'none' or 'median', not {cfg.center!r}")
+    # quantization step per channel (gyro, then accelerometer), each computed once
+    known = list(resolution) if resolution is not None and cfg.center == "none" else None
+    res_g = known[:3] if known is not None else [estimate_resolution(g[:, j]) for j in range(3)]
+    res_a = (known[3:6] if known is not None else [estimate_resolution(a[:, j]) for j in range(3)]) if a is not None \
+        else []
 
-    def stat_and_threshold(v):
+    def stat_and_threshold(v, res):
         s = _moving_variance(np.linalg.norm(v, axis=1), w)
         pos = s[s > 0]
         floor = np.quantile(pos, cfg.floor_quantile) if pos.size else 0.0
-        res = [estimate_resolution(v[:, j]) for j in range(3)]
         q = max([r for r in res if r] or [0.0])
         floor = max(floor, q * q / 12.0, np.finfo(float).tiny)
         return s, cfg.k_threshold * floor
 
-    sg, thr_g = stat_and_threshold(g)
+    sg, thr_g = stat_and_threshold(g, res_g)
     quiet = sg < thr_g
     if a is not None:
-        sa, thr_a = stat_and_threshold(a)
+        sa, thr_a = stat_and_threshold(a, res_a)
         quiet &= sa < thr_a
     else:
         sa, thr_a = np.zeros(n), np.inf
     starts, ends = _runs(quiet)
 
     both = g if a is None else np.column_stack([g, a])
-    res_all = np.array([estimate_resolution(both[:, j]) or 0.0 for j in range(both.shape[1])])
+    res_all = np.array([r or 0.0 for r in res_g + res_a])
     if cfg.refine_edges and starts.size:
         new_s, new_e = [], []
         for s0, e0 in zip(starts, ends):

@@ -122,10 +122,11 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     detection = None
     unmatched: list[int] = []
     angle_of_t = {}
+    res = [estimate_resolution(y[:, j]) for j in range(6)]  # quantization step per channel, computed once
 
     if table is not None and len(table):
         method = "table_log"
-        alignment = clock_alignment if clock_alignment is not None else align_clocks(plan, imu, table, cfg)
+        alignment = clock_alignment if clock_alignment is not None else align_clocks(plan, imu, table, cfg, res)
         if alignment.method == "none":
             warnings.append("clock alignment failed: offset 0 assumed")
             for k in reasons:
@@ -157,7 +158,7 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
                 windows[k] = (s.start_s + med_shift + s.settle_s + cfg.guard_s, s.end_s + med_shift - cfg.guard_s)
     else:
         method = "imu_only"
-        detection = detect_quiet_intervals(t, gyro, accel, cfg.detector)
+        detection = detect_quiet_intervals(t, gyro, accel, cfg.detector, res)
         shift, runs = match_plan(plan, t, gyro, accel, detection, lat, grav, cfg)
         shifts[:] = shift if abs(shift) > dt else 0.0  # data agree with the plan's timing within a sample
         for k, s in enumerate(plan.steps):
@@ -175,7 +176,6 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     # whole revolutions, sample selection, outliers, reference inputs
     window_step = np.full(t.size, -1, dtype=np.int64)
     keep = np.zeros(t.size, bool)
-    res = [estimate_resolution(y[:, j]) for j in range(6)]
     per_step = {}
     for k, s in enumerate(plan.steps):
         if k not in windows:
