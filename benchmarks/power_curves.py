@@ -5,7 +5,7 @@
     python benchmarks/power_curves.py --families all --repeats 2 --out /tmp/pc --score-only   # re-score
 
 Every family on its own grid (``DEFAULT_GRIDS``: about 0.5x-4x the level where its clear-case held-out gain meets
-the gate), in repeat-major order, results rewritten after every device (a run stopped by ``timeout`` keeps what it
+the gate), in repeat-major order (central grid points first), results rewritten after every device (a run stopped by ``timeout`` keeps what it
 measured; the work folder is resumable: device ids carry family, scale and repeat).
 
 Each point is one sealed device written by the withheld-effect benchmark's own generator
@@ -321,8 +321,11 @@ def main(argv=None):
             "workers": a.workers or 2, "families": fams, "scales": scales,
             "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "commit": commit,
             "code": hashlib.sha256(Path(__file__).read_bytes()).hexdigest()[:12]}
-    # repeat-major order, so that a run cut short (``timeout``) still covers every family and scale once
-    order = [(rep, f, s) for rep in range(a.repeats) for f in fams for s in scales[f]]
+    # repeat-major, then grid points from the middle of each family's grid outwards, then families: a run cut short
+    # (``timeout``) still has the central points of every family
+    n_max = max(len(v) for v in scales.values())
+    order = [(rep, f, scales[f][i]) for rep in range(a.repeats)
+             for i in sorted(range(n_max), key=lambda i: abs(i - (n_max - 1) / 2)) for f in fams if i < len(scales[f])]
     truths = []
 
     def finish():
