@@ -358,13 +358,13 @@ def lack_of_fit(d: Design, atoms: list[int], atom: int) -> LackOfFit | None:
     at_ = ATOMS[atom]
     from assets_lib.simreal import effects as fx
 
-    if fx.FAMILIES[at_.family].block != "A" or not d.a_rows:
+    if not fx.has_block(at_.family, "A") or not d.a_rows:
         return None
     chans = [at_.channel] if at_.channel is not None else \
         [j for j in range(6) if any(k[1] == j for k in d.a_rows)
          and fx.columns(at_.family, "A", {"n": 1, "omega": np.zeros((1, 3)), "omega_motion": np.zeros((1, 3)),
                                          "force": np.zeros((1, 3)), "temp": np.zeros(1), "t_on": np.zeros(1),
-                                         "is_rate": np.zeros(1, bool)}, j) is not None]
+                                         "is_rate": np.zeros(1, bool), "wobble": np.zeros((1, 2, 3))}, j) is not None]
     runs = np.flatnonzero(d.carries[:, atom])
     cols = cols_of(atoms)
     keys = sorted({(j, k) for (ri, j), r in d.a_rows.items() if j in chans and ri in runs for k in r["keys"]})

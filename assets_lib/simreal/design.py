@@ -109,10 +109,14 @@ def block_a_features(p: pd.DataFrame, inp: RunInputs) -> dict:
         if lag:
             c = np.concatenate([[0.0], np.cumsum(fx.lagged_temperature(inp.t_s, inp.temperature_degc, lag))])
             lags[float(lag)] = (c[i1] - c[i0]) / (i1 - i0)
+    # plateau means of the wobble's signature -(e_m x f) (effects.columns, table_wobble on block A)
+    wob = np.stack([-np.cross(e, inp.f_b_mps2) for e in (inp.tilt_e1_b, inp.tilt_e2_b)], axis=1)  # (n, 2, 3)
+    cw = np.concatenate([np.zeros((1, 2, 3)), np.cumsum(wob, axis=0)])
+    wob_mean = (cw[i1] - cw[i0]) / (i1 - i0)[:, None, None]
     return {"n": len(p), "omega": w, "omega_motion": w - we, "force": f, "temp": p["temperature_degc_mean"].to_numpy(float),
                 "t_on": tmid + ton0, "t_run": tmid,
                 "is_rate": (p["kind"].to_numpy() == "rate") & (np.abs(p["commanded_rate_radps"].to_numpy(float)) > 0),
-                "step": p["step_index"].to_numpy(float), "temp_lag": lags}
+                "step": p["step_index"].to_numpy(float), "temp_lag": lags, "wobble": wob_mean}
 
 
 def _project(yw, Xw, Nw):
@@ -164,7 +168,7 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                 sub["n"] = idx.size
                 X = np.zeros((idx.size, P))
                 for ai, at in enumerate(ATOMS):
-                    if fx.FAMILIES[at.family].block != "A":
+                    if not fx.has_block(at.family, "A"):
                         continue
                     if at.channel is not None and at.channel != j:
                         continue

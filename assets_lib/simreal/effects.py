@@ -25,8 +25,10 @@ scale_factor_nonlinearity   A      omega_j^2, omega_j^3                         
 scale_factor_asymmetry      A      |omega_j|                                            rate runs
 lever_arm                   A      omega x (omega x r) on the accelerometers (3 cols)   rate runs
 table_rate_error            B      u_j omega_t {sin, cos}(k theta), k = 1, 2            rate runs
-table_wobble                B      accelerometers: -(e_m x f)_j, m = 1, 2 (1/rev); gyros:    rate runs
-                                   none (a rigid axis tilt leaves the body rate unchanged)
+table_wobble                B, A   accelerometers: -(e_m x f)_j, m = 1, 2 (1/rev); gyros:    runs
+                                   none (a rigid axis tilt leaves the body rate unchanged);
+                                   on A its plateau means (partial revolutions, static
+                                   poses: the tilted base tilts every pose)
 timebase_error              C      clock drift [ppm] = -1e6 eps (t_imu = (1+eps) t)     runs with a table log
 =========================== ====== ==================================================== =========================
 
@@ -69,6 +71,8 @@ class Family:
     n_coef: int
     shapes: tuple = (None,)
     rate_runs_only: bool = False
+    #: further blocks with signature columns (the wobble: its plateau means on block A as well as block B)
+    extra_blocks: tuple = ()
 
 
 FAMILIES: dict[str, Family] = {f.name: f for f in (
@@ -81,7 +85,7 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("scale_factor_asymmetry", "1", GYRO, "A", 1, rate_runs_only=True),
     Family("lever_arm", "m", (), "A", 3, rate_runs_only=True),
     Family("table_rate_error", "1", (), "B", 4, rate_runs_only=True),
-    Family("table_wobble", "rad", (), "B", 2, rate_runs_only=True),
+    Family("table_wobble", "rad", (), "B", 2, extra_blocks=("A",)),
     Family("timebase_error", "1", (), "C", 1),
 )}
 
@@ -93,10 +97,16 @@ def unit_of(family: str, channel: int | None) -> str:
     return u
 
 
+def has_block(family: str, block: str) -> bool:
+    """Does ``family`` have signature columns on ``block``?"""
+    f = FAMILIES[family]
+    return block == f.block or block in f.extra_blocks
+
+
 def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np.ndarray | None:
     """Signature columns (rows of ``feat`` x n_coef) on rows of output channel ``channel`` of ``block``."""
     fam = FAMILIES[family]
-    if fam.block != block:
+    if not has_block(family, block):
         return None
     n = feat["n"]
     z = np.zeros((n, fam.n_coef))
@@ -135,6 +145,15 @@ def columns(family: str, block: str, feat: dict, channel: int, shape=None) -> np
             a = j - 3
             for k in range(3):
                 z[:, k] = np.where(rate, wm[:, a] * wm[:, k] - (a == k) * np.sum(wm**2, axis=1), 0.0)
+        elif family == "table_wobble":
+            # the same rigid tilt on the plateau means: -(e_m x f) averaged over each plateau's samples
+            # (``design.block_a_features``: "wobble", (n, 2, 3)). Over whole revolutions the 1/rev term averages
+            # out, over the partial revolutions of slow or short plateaus it does not, and in static poses it is a
+            # constant level-frame tilt of gravity seen in each pose's body axes; block B (window means removed)
+            # misses all of it (measured on WH-019: the plateau-mean residual was taken by a bias ramp)
+            if j < 3 or "wobble" not in feat:
+                return None
+            z[:] = feat["wobble"][:, :, j - 3]
     elif block == "B":
         th, wt, u, e1, e2, f = feat["theta"], feat["rate_t"], feat["u"], feat["e1"], feat["e2"], feat["force"]
         if family == "table_rate_error":
