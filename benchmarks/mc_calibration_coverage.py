@@ -274,10 +274,10 @@ def nonlinearity_effect(grade: str, rng: np.random.Generator):
 
 def nonlinearity_rows(base: dict, p: pd.DataFrame, means: dict, dev, nonlin) -> list[dict]:
     """The means fit's nonlinearity (max |residual| / full scale, with its interval) on a sensor with injected
-    scale-factor nonlinearity. Truth: the same statistic of the same fit (same plateaus, sems, times and 1/f level)
+    scale-factor nonlinearity. Truth: the same statistic of the same fit (same plateaus, sems, times and the fit's
+    1/f level tau^2: the straight line it draws)
     applied to the noise-free output at the plateaus' sensed rates x = diag(K)(I + E) omega_ref (the effect's own
     input), x + deviation(x), less the constant bias (absorbed by the fit's zero output)."""
-    from assets_lib.calibration.fit_core import flicker_b
     from assets_lib.calibration.means_fit import fit_rate_means
 
     om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
@@ -294,10 +294,13 @@ def nonlinearity_rows(base: dict, p: pd.DataFrame, means: dict, dev, nonlin) -> 
         if not (co.observable and np.isfinite(co.stderr) and co.stderr > 0):
             continue
         q = p.loc[rows]
+        # the fit's own line: its weights (sems) and its 1/f level (tau^2 = B^2 / pi, REML'd or the run's)
+        tau2 = mf.fit.flicker_tau2
+        times = (q["t_start_s"].to_numpy(float)[used], q["t_end_s"].to_numpy(float)[used]) if tau2 > 0 else None
         tru = fit_rate_means((om - ea)[rows, i][used], true_y[rows, i][used],
                              q[f"gyro_{a}_radps_sem"].to_numpy(float)[used], rate_unit="rad/s", output_unit="rad/s",
-                             times=(q["t_start_s"].to_numpy(float)[used], q["t_end_s"].to_numpy(float)[used]),
-                             flicker_b=flicker_b(p, f"gyro_{a}_radps"), exclusion="none")
+                             times=times, flicker_b=float(np.sqrt(np.pi * tau2)) if tau2 > 0 else None,
+                             exclusion="none")
         t = tru.coefficient("nonlinearity").value
         out.append(_row(base, "gyro", a, "nonlinearity", "means", co.value, co.stderr, co.ci95_low, co.ci95_high, t))
     return out
