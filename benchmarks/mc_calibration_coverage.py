@@ -19,9 +19,15 @@ stderr. Also scored, from the same result objects:
   would (one mounting: the sweep's rate plateaus and the zero-rate plateaus in the same orientation; table rate,
   plateau mean and sem, plateau start/end times and the run's 1/f level B for the correlated-noise model):
   scale factor, K+, K-, asymmetry;
-- the nonlinearity statistic (max |residual| / full scale, rate fit and means fit; a statistic with a detection
-  floor, not an interval): the simulated sensors are linear (trials without injected asymmetry), so the
-  fraction of fits whose statistic stays below the printed 95 % noise floor is the floor's coverage (target 95 %);
+- the nonlinearity statistic (max |residual| / full scale, rate fit and means fit) at zero: on linear sensors
+  (trials with neither asymmetry nor nonlinearity injected) the fraction of fits whose statistic stays below the
+  printed 95 % noise floor is the floor's coverage (target 95 %), families ``*nonlinearity_below_floor``;
+- the means fit's nonlinearity away from zero (family ``gyro:means:nonlinearity``): the digital twin's
+  ``ScaleFactorNonlinearity`` (quadratic and cubic per axis, ``NONLINEARITY_SD`` of full scale) is injected into
+  the rate run of one plan-cycle pair in four (no asymmetry there); its printed interval is scored against the
+  same statistic of the same fit on the noise-free output (:func:`nonlinearity_rows`). In those trials the rate
+  run's other rows (rate fit, difference method, means K, K+-, asymmetry, the rate fit's nonlinearity) are not
+  scored: they absorb the injected curve, so their truth is not the device's coefficient;
 - ``imulab fit tumble --misalignment-term`` (``fit_tumble_means``, seed 001's K0-K3 model) on the accelerometer
   axes a position plan tumbles through a full turn (the seed 001 12-position plan): K0-K3, delta_o and the
   derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth);
@@ -55,8 +61,8 @@ Not scored here (stated, so no printed interval passes unchecked):
 - ``imulab fit tumble`` without ``--misalignment-term``: on a tumble through a full turn the cos theta term is
   orthogonal to the others, so K0-K3 keep their values, but the misalignment left in the residuals widens them
   (the fit warns: chi-square); scored with the term (below);
-- nonlinearity away from zero (the twin's ``ScaleFactorNonlinearity``): not yet; the floor's coverage is scored
-  on linear sensors only;
+- the rate fit's nonlinearity away from zero (its straight line spans every axis' plateaus; only the means fit's
+  statistic is scored there, see above);
 - the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py.
 
     python benchmarks/mc_calibration_coverage.py --seed 2027 --trials 2000 --workers 2 --records --noise-every 0 --budget-s 2700
@@ -210,14 +216,22 @@ def trial(args: tuple) -> list[dict]:
     rate_plan = rate_names[(k // len(GRADES)) % len(rate_names)]
     pos_plan = pos_names[(k // len(GRADES)) % len(pos_names)]
     dev = example_device(f"MC{seed}-{k:05d}", grade, seed=seed)
-    eps = None
+    eps, nonlin = None, None
     # scale-factor asymmetry injected (digital twin effect) in every other pair of plan cycles, so that every
-    # rate plan meets both cases
-    if (k // (len(GRADES) * len(RATE_PLANS))) % 2 == 1:
+    # rate plan meets both cases; scale-factor nonlinearity in the other half of the cycles without asymmetry
+    cycle = k // (len(GRADES) * len(RATE_PLANS))
+    if cycle % 2 == 1:
         eps = ASYMMETRY_SD[grade] * np.random.default_rng([seed, k, 15]).standard_normal(3)
+    elif cycle % 4 == 2:
+        nonlin = nonlinearity_effect(grade, np.random.default_rng([seed, k, 16]))
+    rate_fx = DEFAULT_EFFECTS
+    if eps is not None:
+        rate_fx = sensor_chain([ScaleFactorAsymmetry(gyro=tuple(eps))])
+    elif nonlin is not None:
+        rate_fx = sensor_chain([nonlin])
     plates = {}
     for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS))):
-        fx = sensor_chain([ScaleFactorAsymmetry(gyro=tuple(eps))]) if (m == 0 and eps is not None) else DEFAULT_EFFECTS
+        fx = rate_fx if m == 0 else DEFAULT_EFFECTS
         sim = simulate_run(dev, _plan(name, scales[name]), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m,
                            effects=fx)
         ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
@@ -232,16 +246,71 @@ def trial(args: tuple) -> list[dict]:
                    np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
                    np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc), eps)
     base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan,
-            "asymmetry_injected": eps is not None}
+            "asymmetry_injected": eps is not None, "nonlinearity_injected": nonlin is not None}
     gate = [dict(base, sensor="gate", axis="", coefficient=f"{kind}_run_passed", fit="gate", value=np.nan,
                  stderr=np.nan, truth=np.nan, z=np.nan, covered=ok) for kind, ok in zip(("rate", "position"), passed)]
-    rows = gate + score(base, rf, af, gs, truth, rate_means(plates[0]) if passed[0] else None)
+    means = rate_means(plates[0]) if passed[0] else None
+    if nonlin is None:
+        rows = gate + score(base, rf, af, gs, truth, means)
+    else:  # the rate run's other coefficients absorb the injected curve (truth not the device's): scored elsewhere
+        rows = gate + score(base, None, af, gs, truth) + nonlinearity_rows(base, plates[0], means or {}, dev, nonlin)
     if passed[1]:
         rows += tumble_rows(base, plates[1], dev)
     rows += tablefree_rows(base, seed, k)
     if noise_every > 0 and k % noise_every == 0:
         rows += noise_rows(base, seed, k)
     return rows
+
+
+def nonlinearity_effect(grade: str, rng: np.random.Generator):
+    """The digital twin's ``ScaleFactorNonlinearity`` (polynomial form: quadratic and cubic per axis, each drawn
+    with the grade's ``NONLINEARITY_SD`` of full scale, full scale ``NONLINEARITY_FS_DPS``)."""
+    from assets_lib.sim.effects.response import ScaleFactorNonlinearity
+
+    sd = NONLINEARITY_SD[grade]
+    return ScaleFactorNonlinearity(sensor="gyro", full_scale=float(np.radians(NONLINEARITY_FS_DPS)),
+                                   quadratic=tuple(sd * rng.standard_normal(3)), cubic=tuple(sd * rng.standard_normal(3)))
+
+
+def nonlinearity_rows(base: dict, p: pd.DataFrame, means: dict, dev, nonlin) -> list[dict]:
+    """The means fit's nonlinearity (max |residual| / full scale, with its interval) on a sensor with injected
+    scale-factor nonlinearity. Truth: the same statistic of the same fit (same plateaus, sems, times and the fit's
+    1/f level tau^2: the straight line it draws)
+    applied to the noise-free output at the plateaus' sensed rates x = diag(K)(I + E) omega_ref (the effect's own
+    input), x + deviation(x), less the constant bias (absorbed by the fit's zero output)."""
+    from assets_lib.calibration.means_fit import fit_rate_means
+
+    om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
+    ea = p[[f"omega_earth_{a}_radps" for a in AX]].to_numpy(float)
+    sensed = om @ np.asarray(dev.gyro.matrix()).T
+    true_y = sensed + nonlin.deviation(sensed)  # noise-free output less the constant bias
+    rows_of = means_rows(p)
+    out = []
+    for a, mf in means.items():
+        i = AX.index(a)
+        rows = rows_of[a]
+        used = mf.fit.used
+        co = mf.coefficient("nonlinearity")
+        if not (co.observable and np.isfinite(co.stderr) and co.stderr > 0):
+            continue
+        q = p.loc[rows]
+        # the fit's own line: its weights (sems) and its 1/f level (tau^2 = B^2 / pi, REML'd or the run's)
+        tau2 = mf.fit.flicker_tau2
+        times = (q["t_start_s"].to_numpy(float)[used], q["t_end_s"].to_numpy(float)[used]) if tau2 > 0 else None
+        tru = fit_rate_means((om - ea)[rows, i][used], true_y[rows, i][used],
+                             q[f"gyro_{a}_radps_sem"].to_numpy(float)[used], rate_unit="rad/s", output_unit="rad/s",
+                             times=times, flicker_b=float(np.sqrt(np.pi * tau2)) if tau2 > 0 else None,
+                             exclusion="none")
+        t = tru.coefficient("nonlinearity").value
+        out.append(_row(base, "gyro", a, "nonlinearity", "means", co.value, co.stderr, co.ci95_low, co.ci95_high, t))
+    return out
+
+
+#: 1-sigma of the injected gyro scale-factor nonlinearity coefficients (quadratic, cubic; fraction of full scale
+#: NONLINEARITY_FS_DPS) per grade, in the cycles without asymmetry (effects.md magnitudes: FOG ~10 ppm, tactical
+#: MEMS ~100-500 ppm, consumer MEMS 0.1-0.5 %)
+NONLINEARITY_SD = {"navigation": 20e-6, "tactical": 300e-6, "consumer": 2e-3}
+NONLINEARITY_FS_DPS = 400.0
 
 
 #: default --noise-every: one trial in ten also runs the noise scoring (~8 s of static runs and Allan fits, as much as
@@ -344,16 +413,11 @@ def tablefree_rows(base: dict, seed: int, k: int) -> list[dict]:
     return out
 
 
-def rate_means(p: pd.DataFrame) -> dict:
-    """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab would tabulate it: table rate about the
-    axis, plateau mean and sem of that axis, plateau start/end times and the run's 1/f level B (segmentation's
-    ``*_flicker_b``) for the correlated-noise model."""
-    from assets_lib.calibration.fit_core import flicker_b
-    from assets_lib.calibration.means_fit import fit_rate_means
+def means_rows(p: pd.DataFrame) -> dict[str, np.ndarray]:
+    """Per axis, the plateaus a lab tabulates for ``imulab fit rate``: the axis' sweep in one mounting."""
     from assets_lib.calibration.rate_fit import on_axis_rows
 
     om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
-    ea = p[[f"omega_earth_{a}_radps" for a in AX]].to_numpy(float)
     fr = p[[f"f_ref_{a}_mps2" for a in AX]].to_numpy(float)
     ok = ~p["flagged"].astype(bool).to_numpy()
     rate = p["kind"].to_numpy() == "rate"
@@ -365,6 +429,21 @@ def rate_means(p: pd.DataFrame) -> dict:
         if (rows & rate).any():
             f0 = np.median(fr[rows & rate], axis=0)
             rows &= np.linalg.norm(fr - f0, axis=1) < 1.0
+        out[a] = rows
+    return out
+
+
+def rate_means(p: pd.DataFrame) -> dict:
+    """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab would tabulate it: table rate about the
+    axis, plateau mean and sem of that axis, plateau start/end times and the run's 1/f level B (segmentation's
+    ``*_flicker_b``) for the correlated-noise model."""
+    from assets_lib.calibration.fit_core import flicker_b
+    from assets_lib.calibration.means_fit import fit_rate_means
+
+    om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
+    ea = p[[f"omega_earth_{a}_radps" for a in AX]].to_numpy(float)
+    out = {}
+    for i, (a, rows) in enumerate(means_rows(p).items()):
         if rows.sum() >= 5:
             times = None
             if "t_start_s" in p and "t_end_s" in p:

@@ -89,6 +89,13 @@ def test_small_benchmark_scores_every_family(tmp_path):
     r = pd.DataFrame(mc.trial((915, 3, False, 0)))
     assert set(r["rate_plan"]) == {"seed003_rate_sequence"} and set(r["pos_plan"]) == {"six_position"}
     assert {"accel:accel:bias", "accel:accel:scale_factor", "gyro:rate:sf_asymmetry"} <= set(mc.family(r))
+    # injected scale-factor nonlinearity (trial 12: plan-cycle 2): scored away from zero against the noise-free
+    # statistic; the rate run's other rows (their truth absorbs the curve) are not scored in that trial
+    r = pd.DataFrame(mc.trial((915, 12, True, 0)))
+    nl = r[mc.family(r) == "gyro:means:nonlinearity"]
+    assert len(nl) == 3 and r["nonlinearity_injected"].all()
+    assert (nl["truth"] > 0).all() and (nl["z"].abs() < 6).all()
+    assert not (r["fit"].isin(["rate", "difference"]) | (mc.family(r) == "gyro:means:scale_factor")).any()
 
 
 @pytest.mark.slow

@@ -223,8 +223,11 @@ def fit_rate_means(
                              f"max |residual| over full-scale output |K| max|w| = {fs:.6g} {ou}, worst at "
                              f"{at / fac:+.6g} {rate_unit}; noise floor (95 %) {floor * 1e6:.3g} ppm"))
     pre_asym = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
+    # the hinge fit takes its 1/f level from the run (Allan B) or, without one, by its own REML, never the straight
+    # line's: a REML under the straight line reads an asymmetry's |w| misfit as 1/f noise (tau^2 up to 1e4x the
+    # truth), which widened K+, K- and the asymmetry (z sd 0.55-0.65 with asymmetry injected, coverage 0.99)
     kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol,
-                                                      times=tm, flicker_tau2=fit.flicker_tau2)
+                                                      times=tm, flicker_tau2=flicker_prior_tau2(flicker_b))
     kk = fa.k95 if fa is not None else 1.96
     for name, v, s, u in (("scale_factor_pos", kp * fac, sp * fac, f"{ou}/({rate_unit})"),
                           ("scale_factor_neg", kn * fac, sn * fac, f"{ou}/({rate_unit})"),
