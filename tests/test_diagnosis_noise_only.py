@@ -56,3 +56,54 @@ def test_pooled_allan_views_add_a_shared_shift_and_keep_unit_spread():
             for _ in range(400)]
     sensor = np.array([v[("allan_band_pooled_accel_tau0.32s", "st", None, None)] for v in vals])
     assert 0.85 < sensor.std() < 1.15 and abs(sensor.mean()) < 0.15
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("grade", ["navigation"])
+def test_noise_only_device_goes_to_noise_model(grade, tmp_path):
+    """The quick tier's noise-only device of the grade (the same sealed archive: generator seed 11, device id,
+    diagnosis seed 0, R = 5) is reported ``noise_model``: the gap is in the stochastic views only, located on the
+    gyro Allan views, nothing deterministic accepted, the Gauss-Markov term re-estimated. The navigation grade is
+    the hardest (white noise dominates its short-tau Allan curve; before the pooled views and the tau-trended
+    moderation it was ``no_gap``)."""
+    from assets_lib.simreal.diagnose import diagnose_device
+
+    c = [c for c in wh.cases("quick") if c["category"] == "noise_only" and c["grade"] == grade][0]
+    wh.write_case(tmp_path, c, seed=11)
+    d = diagnose_device(tmp_path / "landing", c["device_id"], replicates=5, seed=0, workers=2, aug_replicates=4)
+    rep = d.report
+    assert rep["verdict"] == "noise_model", rep["where"][:3]
+    assert rep["effects"] == []
+    top = rep["where"][0]
+    assert top["view"].startswith("allan") and "gyro" in (top["channel"] or top["view"])
+    nr = rep["noise_refit"]
+    assert nr["deterministic_views_still_significant"] == 0
+    assert max(t["gm_sigma"] for ch, t in nr["terms_si"].items() if ch.startswith("gyro")) > 0
+
+
+def test_axes_combination_adds_opposite_shifts_and_keeps_null_calibration():
+    """calibrate's second-level views: the three axes' single-tau Allan views of a sensor combined by chi^2(3) of
+    their normal scores; shifts of opposite sign on two axes (as on the tactical noise-only case, where the twin
+    absorbed the bump differently per axis) add up, and on null data the combined p is uniform-like."""
+    from scipy import stats
+
+    from assets_lib.simreal.views import calibrate
+
+    rng = np.random.default_rng(11)
+    R = 5
+    taus = 0.04 * 2.0 ** np.arange(12)
+    keys = [(f"allan_level_tau{t:.3g}s", "st", f"gyro_{a}", None) for t in taus for a in "xyz"]
+    keys += [("plateau_residual", "r1", "gyro_x", k) for k in range(200)]
+    reps = [{k: rng.standard_normal() for k in keys} for _ in range(R)]
+    real = {k: rng.standard_normal() for k in keys}
+    t0 = calibrate(real, reps).table
+    ax = t0[t0["view"].str.startswith("allan_level_axes_gyro")]
+    assert len(ax) == taus.size and not t0["significant"].any()
+    one = t0[t0["view"] == "allan_level_tau2.56s"]
+    chi = np.sum(stats.norm.isf(one["p"].to_numpy() / 2) ** 2)
+    assert float(ax[ax["view"] == "allan_level_axes_gyro_tau2.56s"]["p"].iloc[0]) == pytest.approx(stats.chi2.sf(chi, 3))
+    real[("allan_level_tau2.56s", "st", "gyro_y", None)] = 6.0
+    real[("allan_level_tau2.56s", "st", "gyro_z", None)] = -6.0
+    t1 = calibrate(real, reps).table
+    top = t1.iloc[0]
+    assert top["view"] == "allan_level_axes_gyro_tau2.56s" and bool(top["significant"]) and top["channel"] is None

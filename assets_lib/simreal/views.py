@@ -28,6 +28,8 @@ Registry (view name -> what it is; ``group`` stochastic views route a gap to the
   sensor's three axes, channel null): the two above summed over 3 neighbouring octaves (and axes) over
   sqrt(terms), the power a lab's eye has on an Allan plot for a bump spread over octaves (:func:`pooled_allan_views`)
   (stochastic);
+- ``allan_{band,level}_axes_{sensor}_tau*``: the three axes' calibrated single-tau views combined (chi-square,
+  3 dof; added in :func:`calibrate`, :func:`_axes_combined`) (stochastic);
 - ``residual_spectrum_peak``: largest spectral line of the static residual over the median PSD.
 """
 
@@ -216,6 +218,38 @@ class ViewTable:
         return t[t["stochastic"] == stochastic]
 
 
+def _axes_combined(t: pd.DataFrame) -> pd.DataFrame:
+    """Second-level Allan views ``allan_{band,level}_axes_{sensor}_tau*`` (channel null): the three axes' calibrated
+    single-tau views of one static record combined by a chi-square with 3 dof of their normal scores
+    (z_n = Phi^-1(1 - p/2), each p from the view's own moderated Student-t): the axes' noise processes are
+    independent, so sum z_n^2 ~ chi^2(3) under the null exactly as far as each p is right (Fisher-type
+    combination of independent tests, [NIST1065] sec. 5 for the EDF of one record's Allan deviation). Octaves
+    of one record are not combined this way (overlapping estimates are correlated; :func:`pooled_allan_views`
+    pools them before calibration instead). Sign-free: a noise mismatch that the twin absorbed differently per
+    axis (measured on the tactical noise-only case WH-028: level views at 41 s of z +5.6 on gyro y and -5.0 on
+    gyro z, both under BH q <= 0.01 alone) adds up here instead of cancelling as in a sum. The reported z is the
+    normal score of the combined p."""
+    import re
+
+    rows = []
+    pat = re.compile(r"allan_(band|level)_tau([0-9.e+-]+)s$")
+    sub = t[t["view"].str.match(pat) & t["channel"].notna()]
+    if sub.empty:
+        return t.iloc[:0]
+    sub = sub.assign(sensor=sub["channel"].str.split("_").str[0],
+                     zn=stats.norm.isf(np.clip(sub["p"].to_numpy(float), 1e-300, 1.0) / 2))
+    for (view, run, sensor), g in sub.groupby(["view", "run_id", "sensor"], dropna=False):
+        if len(g) != 3:
+            continue
+        kind, tau = pat.match(view).groups()
+        chi = float(np.sum(g["zn"] ** 2))
+        p = float(stats.chi2.sf(chi, 3))
+        rows.append({"view": f"allan_{kind}_axes_{sensor}_tau{tau}s", "run_id": run, "channel": None,
+                     "step_index": None, "real": chi, "rep_mean": 3.0, "rep_sd": float(np.sqrt(6.0)),
+                     "z": float(stats.norm.isf(max(p, 1e-300) / 2)), "dof": float("inf"), "null_scale": 1.0, "p": p})
+    return pd.DataFrame(rows, columns=t.columns) if rows else t.iloc[:0]
+
+
 def bh_q(p: np.ndarray) -> np.ndarray:
     """Benjamini-Hochberg adjusted p-values (q-values)."""
     p = np.asarray(p, float)
@@ -374,6 +408,7 @@ def calibrate(real: dict, reps: list[dict], min_reps: int = 3) -> ViewTable:
     dof = t["dof"].to_numpy(float)
     t["p"] = np.where(np.isinf(dof), 2 * stats.norm.sf(az), 2 * stats.t.sf(az, np.where(np.isinf(dof), 1.0, dof)))
     t = t.drop(columns=["group"])
+    t = pd.concat([t, _axes_combined(t)], ignore_index=True)
     t["q"] = bh_q(t["p"].to_numpy())
     t["stochastic"] = [is_stochastic(v) for v in t["view"]]
     t["significant"] = (t["q"] <= Q_SIG) & (t["z"].abs() >= Z_SIG)
