@@ -92,9 +92,10 @@ def answers(rep: dict) -> list[str]:
         nr = rep.get("noise_refit") or {}
         terms = "; ".join(f"{ch}: " + ", ".join(f"{k} {v:.3g}" for k, v in t.items() if v)
                           for ch, t in (nr.get("terms_si") or {}).items())
+        check = ("the re-estimated twin's replicates leave no deterministic view significant"
+                 if nr.get("replicates_rerun") else "no deterministic view was significant")
         out.append("Which: no deterministic effect is supported; the gap is in the noise model (verdict noise model). "
-                   "Re-estimated from the long static record (IEEE 952 terms + a Gauss-Markov term, SI), the "
-                   "twin's replicates leave no deterministic view significant"
+                   "Re-estimated from the long static record (IEEE 952 terms + a Gauss-Markov term, SI); " + check
                    + (f": {terms}." if terms else "."))
     else:
         out.append("Which: no effect of the library explains it (verdict unexplained); nothing was forced onto the "
