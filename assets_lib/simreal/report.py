@@ -35,8 +35,14 @@ _PLAIN_VIEW = {
 
 
 def plain_view(v: str) -> str:
-    if v.startswith("allan_band"):
-        return f"the Allan deviation of the long static record at tau = {v.split('tau')[1]}"
+    if v.startswith(("allan_band", "allan_level")):
+        how = " (shape)" if v.startswith("allan_band") else " (level against the twin's noise model)"
+        for sensor in ("gyro", "accel"):
+            if f"_{sensor}_" in v:
+                how += f", the three {sensor} axes " + ("combined" if "_axes_" in v else "pooled")
+        if "_pooled_tau" in v:
+            how += ", pooled over 3 octaves"
+        return f"the Allan deviation of the long static record{how} at tau = {v.split('tau')[1]}"
     if v.startswith("static_residual_vs_f"):
         return "the static-position gyro residuals, growing with specific force squared"
     return _PLAIN_VIEW.get(v, v)
