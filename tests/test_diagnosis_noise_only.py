@@ -68,7 +68,7 @@ def test_noise_only_device_goes_to_noise_model(grade, tmp_path):
     moderation it was ``no_gap``)."""
     from assets_lib.simreal.diagnose import diagnose_device
 
-    c = [c for c in wh.cases("quick") if c["category"] == "noise_only" and c["grade"] == grade][0]
+    c = next(c for c in wh.cases("quick") if c["category"] == "noise_only" and c["grade"] == grade)
     wh.write_case(tmp_path, c, seed=11)
     d = diagnose_device(tmp_path / "landing", c["device_id"], replicates=5, seed=0, workers=2, aug_replicates=4)
     rep = d.report
