@@ -222,8 +222,8 @@ def _axes_combined(t: pd.DataFrame) -> pd.DataFrame:
     """Second-level Allan views ``allan_{band,level}_axes_{sensor}_tau*`` (channel null): the three axes' calibrated
     single-tau views of one static record combined by a chi-square with 3 dof of their normal scores
     (z_n = Phi^-1(1 - p/2), each p from the view's own moderated Student-t): the axes' noise processes are
-    independent, so sum z_n^2 ~ chi^2(3) under the null exactly as far as each p is right (Fisher-type
-    combination of independent tests, [NIST1065] sec. 5 for the EDF of one record's Allan deviation). Octaves
+    independent, so sum z_n^2 ~ chi^2(3) under the null exactly as far as each p is right (the chi-square
+    combination of independent normal scores; [NIST1065] sec. 5 for the EDF of one record's Allan deviation). Octaves
     of one record are not combined this way (overlapping estimates are correlated; :func:`pooled_allan_views`
     pools them before calibration instead). Sign-free: a noise mismatch that the twin absorbed differently per
     axis (measured on the tactical noise-only case WH-028: level views at 41 s of z +5.6 on gyro y and -5.0 on
@@ -303,7 +303,7 @@ def moderated_variance(s2: np.ndarray, d: np.ndarray) -> tuple[float, float]:
 def moderated_variance_trend(s2: np.ndarray, d: np.ndarray, x: np.ndarray, degree: int = 2
                               ) -> tuple[np.ndarray, float]:
     """[SMYTH2004]'s prior with a trend: the log-variance prior mean is a polynomial of degree ``degree`` in the
-    covariate ``x`` (limma's ``eBayes(trend=TRUE)``, Law et al. 2014), d0 from the scatter about the trend.
+    covariate ``x`` (limma's ``eBayes(trend=TRUE)``, [LAW2014]), d0 from the scatter about the trend.
 
     Used for the Allan views, whose replicate spread varies smoothly with tau (a record's own IEEE 952 fit absorbs
     more of the curve near the ends of the tau range: on the navigation noise-only case the replicate sd of the
