@@ -227,7 +227,7 @@ def _axes_combined(t: pd.DataFrame) -> pd.DataFrame:
     of one record are not combined this way (overlapping estimates are correlated; :func:`pooled_allan_views`
     pools them before calibration instead). Sign-free: a noise mismatch that the twin absorbed differently per
     axis (measured on the tactical noise-only case WH-028: level views at 41 s of z +5.6 on gyro y and -5.0 on
-    gyro z, both under BH q <= 0.01 alone) adds up here instead of cancelling as in a sum. The reported z is the
+    gyro z, neither reaching BH q <= 0.01 alone) adds up here instead of cancelling as in a sum. The reported z is the
     normal score of the combined p."""
     import re
 
