@@ -275,7 +275,10 @@ def where_table(vt: ViewTable, vt_after: ViewTable | None, effects: list | None 
     key = ["view", "run_id", "channel", "step_index"]
     if vt_after is None or t.empty:
         t["z_after"] = np.nan
-        return t[t["significant"]] if t["significant"].any() else t.head(10)
+        out = (t[t["significant"]] if t["significant"].any() else t.head(10)).copy()
+        for c in ("run_id", "channel"):  # channel-null views (sensor-pooled Allan views) as None, not NaN
+            out[c] = out[c].astype(object).where(out[c].notna(), None)
+        return out
     za = vt_after.table[key + ["z"]].rename(columns={"z": "z_after"})
     t = t.astype({"step_index": float}).merge(za.astype({"step_index": float}), on=key, how="left")
     drop = np.where(t["stochastic"], -np.inf, t["z"].abs() - t["z_after"].abs().fillna(np.inf))
