@@ -35,8 +35,14 @@ _PLAIN_VIEW = {
 
 
 def plain_view(v: str) -> str:
-    if v.startswith("allan_band"):
-        return f"the Allan deviation of the long static record at tau = {v.split('tau')[1]}"
+    if v.startswith(("allan_band", "allan_level")):
+        how = " (shape)" if v.startswith("allan_band") else " (level against the twin's noise model)"
+        for sensor in ("gyro", "accel"):
+            if f"_{sensor}_" in v:
+                how += f", the three {sensor} axes " + ("combined" if "_axes_" in v else "pooled")
+        if "_pooled_tau" in v:
+            how += ", pooled over 3 octaves"
+        return f"the Allan deviation of the long static record{how} at tau = {v.split('tau')[1]}"
     if v.startswith("static_residual_vs_f"):
         return "the static-position gyro residuals, growing with specific force squared"
     return _PLAIN_VIEW.get(v, v)
@@ -92,9 +98,10 @@ def answers(rep: dict) -> list[str]:
         nr = rep.get("noise_refit") or {}
         terms = "; ".join(f"{ch}: " + ", ".join(f"{k} {v:.3g}" for k, v in t.items() if v)
                           for ch, t in (nr.get("terms_si") or {}).items())
+        check = ("the re-estimated twin's replicates leave no deterministic view significant"
+                 if nr.get("replicates_rerun") else "no deterministic view was significant")
         out.append("Which: no deterministic effect is supported; the gap is in the noise model (verdict noise model). "
-                   "Re-estimated from the long static record (IEEE 952 terms + a Gauss-Markov term, SI), the "
-                   "twin's replicates leave no deterministic view significant"
+                   "Re-estimated from the long static record (IEEE 952 terms + a Gauss-Markov term, SI); " + check
                    + (f": {terms}." if terms else "."))
     else:
         out.append("Which: no effect of the library explains it (verdict unexplained); nothing was forced onto the "

@@ -24,6 +24,12 @@ Registry (view name -> what it is; ``group`` stochastic views route a gap to the
   against the twin, each replicate against its own refit), so replicates carry the noise estimate's error as the
   real data do; it measures a static record whose noise level differs from what the runs' plateaus give
   (stochastic);
+- ``allan_{band,level}_pooled_tau*`` (per channel) and ``allan_{band,level}_pooled_{gyro,accel}_tau*`` (the
+  sensor's three axes, channel null): the two above summed over 3 neighbouring octaves (and axes) over
+  sqrt(terms), the power a lab's eye has on an Allan plot for a bump spread over octaves (:func:`pooled_allan_views`)
+  (stochastic);
+- ``allan_{band,level}_axes_{sensor}_tau*``: the three axes' calibrated single-tau views combined (chi-square,
+  3 dof; added in :func:`calibrate`, :func:`_axes_combined`) (stochastic);
 - ``residual_spectrum_peak``: largest spectral line of the static residual over the median PSD.
 """
 
@@ -110,17 +116,62 @@ def compute_views(d: Design, processed: dict, noise: tuple | None = None) -> dic
                 z = z[np.isfinite(z) & (np.abs(z) < 1e6)]
                 if z.size >= 3:
                     out[("fit_chi2", run, ch, None)] = float(np.log(np.median(z**2) + 1e-12))
+        per_tau: dict = {}  # (kind, channel) -> (tau, values): the single-tau views, pooled below
         for ch, (tau, adev, edf) in pr.allan.items():
-            for t, v in zip(tau, allan_fit_residual(tau, adev, edf)):
+            band = allan_fit_residual(tau, adev, edf)
+            per_tau[("band", ch)] = (np.asarray(tau, float), band)
+            for t, v in zip(tau, band):
                 if np.isfinite(v):
                     out[(f"allan_band_tau{t:.3g}s", run, ch, None)] = float(v)
             if noise is not None:
                 model = noise[CHANNEL_NAMES.index(ch)].avar(np.asarray(tau, float))
-                for t, a, e, m in zip(tau, adev, edf, model):
+                lvl = np.full(len(tau), np.nan)
+                for i, (t, a, e, m) in enumerate(zip(tau, adev, edf, model)):
                     if a > 0 and e > 0 and m > 0:  # sqrt(2 EDF) ln(ADEV / model ADEV): sd ~ 1 at every tau
-                        out[(f"allan_level_tau{t:.3g}s", run, ch, None)] = float(0.5 * np.log(a * a / m) * np.sqrt(2 * e))
+                        lvl[i] = 0.5 * np.log(a * a / m) * np.sqrt(2 * e)
+                        out[(f"allan_level_tau{t:.3g}s", run, ch, None)] = float(lvl[i])
+                per_tau[("level", ch)] = (np.asarray(tau, float), lvl)
+        out.update(pooled_allan_views(per_tau, run))
         for ch, (v, _) in pr.spectrum_peak.items():
             out[("residual_spectrum_peak", run, ch, None)] = v
+    return out
+
+
+#: octaves on each side of a pooled Allan view's centre tau (3 octaves in all: a Gauss-Markov bump's Allan
+#: deviation stays within 30 % of its peak over about tau_c to 4 tau_c)
+POOL_HALF_WIDTH = 1
+
+
+def pooled_allan_views(per_tau: dict, run: str) -> dict:
+    """Allan views pooled over neighbouring octaves, and over the three channels of a sensor.
+
+    ``per_tau``: {(kind, channel): (tau_s, values)}, kind "band" or "level", values the single-tau statistics
+    sqrt(2 EDF) ln(ADEV / model ADEV) (sd ~ 1 each, [IEEE952] Annex C EDF). A Gauss-Markov bump (or any
+    stochastic mismatch) shifts the curve over a few octaves and, when the sensor's axes share it, on every axis:
+    one octave of one 900 s record has a log-ADEV sd of 1/sqrt(2 EDF) ~ 0.11 at 20 s (EDF ~ 43), so a +30 % bump
+    gives a single-tau statistic of ~2.4, under the |z| >= 4 and BH level over ~1,500 views; the sum over
+    2 POOL_HALF_WIDTH + 1 octaves (per channel: ``allan_{kind}_pooled_tau*``, channel kept) and over the sensor's
+    three axes (``allan_{kind}_pooled_{sensor}_tau*``, channel null) divided by sqrt(number of terms) keeps
+    sd ~ 1 for independent terms and adds the shift coherently (x sqrt(3) per channel, x 3 per sensor). Adjacent
+    overlapping-Allan octaves are positively correlated, which only widens the pooled statistic's null spread;
+    that spread is what the replicates measure (the statistic is calibrated like every view, never against N(0, 1)).
+    """
+    out = {}
+    sums: dict = {}
+    for (kind, ch), (tau, vals) in per_tau.items():
+        for i, t in enumerate(tau):
+            lo, hi = max(0, i - POOL_HALF_WIDTH), min(len(tau), i + POOL_HALF_WIDTH + 1)
+            w = vals[lo:hi]
+            if hi - lo < 2 * POOL_HALF_WIDTH + 1 or not np.all(np.isfinite(w)):
+                continue
+            key = f"{t:.3g}"
+            out[(f"allan_{kind}_pooled_tau{key}s", run, ch, None)] = float(w.sum() / np.sqrt(w.size))
+            acc = sums.setdefault((kind, ch.split("_")[0], key), [0.0, 0])
+            acc[0] += float(w.sum())
+            acc[1] += w.size
+    for (kind, sensor, key), (sm, n) in sums.items():
+        if n == 3 * (2 * POOL_HALF_WIDTH + 1):  # all three axes
+            out[(f"allan_{kind}_pooled_{sensor}_tau{key}s", run, None, None)] = sm / np.sqrt(n)
     return out
 
 
@@ -165,6 +216,38 @@ class ViewTable:
         if stochastic is None:
             return t
         return t[t["stochastic"] == stochastic]
+
+
+def _axes_combined(t: pd.DataFrame) -> pd.DataFrame:
+    """Second-level Allan views ``allan_{band,level}_axes_{sensor}_tau*`` (channel null): the three axes' calibrated
+    single-tau views of one static record combined by a chi-square with 3 dof of their normal scores
+    (z_n = Phi^-1(1 - p/2), each p from the view's own moderated Student-t): the axes' noise processes are
+    independent, so sum z_n^2 ~ chi^2(3) under the null exactly as far as each p is right (the chi-square
+    combination of independent normal scores; [NIST1065] sec. 5 for the EDF of one record's Allan deviation). Octaves
+    of one record are not combined this way (overlapping estimates are correlated; :func:`pooled_allan_views`
+    pools them before calibration instead). Sign-free: a noise mismatch that the twin absorbed differently per
+    axis (measured on the tactical noise-only case WH-028: level views at 41 s of z +5.6 on gyro y and -5.0 on
+    gyro z, neither reaching BH q <= 0.01 alone) adds up here instead of cancelling as in a sum. The reported z is the
+    normal score of the combined p."""
+    import re
+
+    rows = []
+    pat = re.compile(r"allan_(band|level)_tau([0-9.e+-]+)s$")
+    sub = t[t["view"].str.match(pat) & t["channel"].notna()]
+    if sub.empty:
+        return t.iloc[:0]
+    sub = sub.assign(sensor=sub["channel"].str.split("_").str[0],
+                     zn=stats.norm.isf(np.clip(sub["p"].to_numpy(float), 1e-300, 1.0) / 2))
+    for (view, run, sensor), g in sub.groupby(["view", "run_id", "sensor"], dropna=False):
+        if len(g) != 3:
+            continue
+        kind, tau = pat.match(view).groups()
+        chi = float(np.sum(g["zn"] ** 2))
+        p = float(stats.chi2.sf(chi, 3))
+        rows.append({"view": f"allan_{kind}_axes_{sensor}_tau{tau}s", "run_id": run, "channel": None,
+                     "step_index": None, "real": chi, "rep_mean": 3.0, "rep_sd": float(np.sqrt(6.0)),
+                     "z": float(stats.norm.isf(max(p, 1e-300) / 2)), "dof": float("inf"), "null_scale": 1.0, "p": p})
+    return pd.DataFrame(rows, columns=t.columns) if rows else t.iloc[:0]
 
 
 def bh_q(p: np.ndarray) -> np.ndarray:
@@ -217,11 +300,49 @@ def moderated_variance(s2: np.ndarray, d: np.ndarray) -> tuple[float, float]:
     return float(np.exp(ebar + special.digamma(d0 / 2) - np.log(d0 / 2))), float(d0)
 
 
+def moderated_variance_trend(s2: np.ndarray, d: np.ndarray, x: np.ndarray, degree: int = 2
+                              ) -> tuple[np.ndarray, float]:
+    """[SMYTH2004]'s prior with a trend: the log-variance prior mean is a polynomial of degree ``degree`` in the
+    covariate ``x`` (limma's ``eBayes(trend=TRUE)``, [LAW2014]), d0 from the scatter about the trend.
+
+    Used for the Allan views, whose replicate spread varies smoothly with tau (a record's own IEEE 952 fit absorbs
+    more of the curve near the ends of the tau range: on the navigation noise-only case the replicate sd of the
+    sensor-pooled shape views ran from 0.17 to 0.66 across octaves, so a constant prior read that trend as
+    scatter, d0 ~ 2.5, and left a z = 6.0 view at 6.5 dof). Returns the per-view prior variance s0^2 and d0."""
+    s2 = np.asarray(s2, float)
+    d = np.asarray(d, float)
+    x = np.asarray(x, float)
+    s0 = np.full(s2.size, np.nan)
+    ok = (s2 > 0) & np.isfinite(s2) & (d > 0) & np.isfinite(x)
+    if ok.sum() < degree + 4:
+        return s0, 0.0
+    e = np.log(s2[ok]) - special.digamma(d[ok] / 2) + np.log(d[ok] / 2)
+    X = np.vander(x[ok] - x[ok].mean(), degree + 1)
+    beta, *_ = np.linalg.lstsq(X, e, rcond=None)
+    fit = X @ beta
+    ve = float(np.sum((e - fit) ** 2) / (e.size - degree - 1) - np.mean(special.polygamma(1, d[ok] / 2)))
+    d0 = float("inf") if ve <= 0 else 2.0 * _trigamma_inverse(ve)
+    corr = 0.0 if np.isinf(d0) else special.digamma(d0 / 2) - np.log(d0 / 2)
+    Xall = np.vander(np.where(np.isfinite(x), x, x[ok].mean()) - x[ok].mean(), degree + 1)
+    s0[:] = np.exp(Xall @ beta + corr)
+    return s0, d0
+
+
+def _log_tau(view: str) -> float:
+    import re
+
+    m = re.search(r"_tau([0-9.e+-]+)s$", view)
+    return float(np.log(float(m.group(1)))) if m else float("nan")
+
+
 def _pool_key(key) -> tuple:
     view, run, ch, _step = key
-    for fam in ("allan_band", "allan_level"):
+    for fam in ("allan_band_pooled", "allan_level_pooled", "allan_band", "allan_level"):
         if view.startswith(fam):
+            if fam.endswith("pooled") and ch is None:  # sensor-pooled: allan_{kind}_pooled_{sensor}_tau*
+                return fam + "_sensor", view.split("_")[3], run is None
             view = fam
+            break
     return view, None if ch is None else ch.split("_")[0], run is None
 
 
@@ -242,14 +363,20 @@ def calibrate(real: dict, reps: list[dict], min_reps: int = 3) -> ViewTable:
     prior = {}
     grp: dict = {}
     for key, (_s, _m, v, R) in stats_.items():
-        grp.setdefault(_pool_key(key), []).append((v, R - 1))
-    for g, lst in grp.items():
-        a = np.array(lst, float)
-        # too few views to estimate how their variances scatter: no pooling (per-view Student-t)
-        prior[g] = moderated_variance(a[:, 0], a[:, 1]) if len(lst) >= MIN_POOL else (float("nan"), 0.0)
+        grp.setdefault(_pool_key(key), []).append(key)
+    for g, keys in grp.items():
+        a = np.array([(stats_[k][2], stats_[k][3] - 1) for k in keys], float)
+        if len(keys) < MIN_POOL:  # too few views to estimate how their variances scatter: per-view Student-t
+            prior.update({k: (float("nan"), 0.0) for k in keys})
+        elif g[0].startswith("allan"):  # the replicate spread of the Allan views trends with tau
+            s0, d0 = moderated_variance_trend(a[:, 0], a[:, 1], np.array([_log_tau(k[0]) for k in keys]))
+            prior.update({k: (float(s0_), d0) for k, s0_ in zip(keys, s0)})
+        else:
+            s0, d0 = moderated_variance(a[:, 0], a[:, 1])
+            prior.update({k: (s0, d0) for k in keys})
     rows = []
     for key, (s, m, v, R) in stats_.items():
-        s0, d0 = prior[_pool_key(key)]
+        s0, d0 = prior[key]
         d = R - 1
         if np.isfinite(s0) and d0 > 0:
             d0 = min(d0, D0_MAX)
@@ -281,6 +408,7 @@ def calibrate(real: dict, reps: list[dict], min_reps: int = 3) -> ViewTable:
     dof = t["dof"].to_numpy(float)
     t["p"] = np.where(np.isinf(dof), 2 * stats.norm.sf(az), 2 * stats.t.sf(az, np.where(np.isinf(dof), 1.0, dof)))
     t = t.drop(columns=["group"])
+    t = pd.concat([t, _axes_combined(t)], ignore_index=True)
     t["q"] = bh_q(t["p"].to_numpy())
     t["stochastic"] = [is_stochastic(v) for v in t["view"]]
     t["significant"] = (t["q"] <= Q_SIG) & (t["z"].abs() >= Z_SIG)
