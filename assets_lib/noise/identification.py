@@ -23,7 +23,11 @@ profile set's upper end), not as a number, whatever the elimination kept; the re
 on the same likelihood ([FELDMAN1998]). A term the record identifies gets a Satterthwaite chi-square interval
 (theta is a variance) from the active-set Wald covariance (X_A' V^-1 X_A)^-1 ([LAWSON1974]: terms at zero are
 constraints; lowering its lower end to the profile's, which extends toward the neighbours put at zero, over-covered
-N and B, z sd 0.7-0.8 in benchmarks/coverage_noise.py). The Markov correlation time
+N and B, z sd 0.7-0.8 in benchmarks/coverage_noise.py), except the long-tau terms B, K and R: they trade places
+with each other, so the active set (a dropped K or R held at zero) charges their share of the long-tau AVAR to the
+kept term with no uncertainty (B two-sided coverage 0.89-0.91); their two-sided interval is the profile set itself.
+The quantization term's PSD in V is the sampled one, (4 Q^2 / tau0) sin^2(pi f tau0) ([IEEE952] C.2), not its
+small-f form, which overstated the variance of Q-dominated short-tau points 1.3-1.9x. The Markov correlation time
 comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
 interval is the union of its intervals over that set. benchmarks/coverage_noise.py measures the coverage of
 every printed interval.
