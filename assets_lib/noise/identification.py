@@ -23,7 +23,11 @@ profile set's upper end), not as a number, whatever the elimination kept; the re
 on the same likelihood ([FELDMAN1998]). A term the record identifies gets a Satterthwaite chi-square interval
 (theta is a variance) from the active-set Wald covariance (X_A' V^-1 X_A)^-1 ([LAWSON1974]: terms at zero are
 constraints; lowering its lower end to the profile's, which extends toward the neighbours put at zero, over-covered
-N and B, z sd 0.7-0.8 in benchmarks/coverage_noise.py). The Markov correlation time
+N and B, z sd 0.7-0.8 in benchmarks/coverage_noise.py), except the long-tau terms B, K and R: they trade places
+with each other, so the active set (a dropped K or R held at zero) charges their share of the long-tau AVAR to the
+kept term with no uncertainty (B two-sided coverage 0.89-0.91); their two-sided interval is the profile set itself.
+The quantization term's PSD in V is the sampled one, (4 Q^2 / tau0) sin^2(pi f tau0) ([IEEE952] C.2), not its
+small-f form, which overstated the variance of Q-dominated short-tau points 1.3-1.9x. The Markov correlation time
 comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
 interval is the union of its intervals over that set. benchmarks/coverage_noise.py measures the coverage of
 every printed interval.
@@ -68,6 +72,8 @@ from raw_schemas.units import lab_unit
 LN2_PI = 2.0 * math.log(2.0) / math.pi  # (2 ln2 / pi): B plateau factor, sqrt = 0.664
 TERMS = ("Q", "N", "B", "K", "R")
 #: local log-log slope of sigma^2 for each term (alpha = -slope - 1 for the EDF)
+#: terms collinear at the long-tau end of a record, intervals from the profile likelihood (fit_noise)
+_LONG_TAU_TERMS = ("B", "K", "R")
 _TERM_ALPHA = {"Q": 2.0, "N": 0.0, "B": -1.0, "K": -2.0, "R": -2.0, "M": 0.0, "S": 0.0}
 
 def sensor_of(channel: str = "", unit: str = "") -> str:
@@ -120,7 +126,10 @@ def _psd_two_sided(f: np.ndarray, theta: Mapping[str, float], tau0: float, tc_s:
     """[IEEE952] Annex C (C.2-C.6): two-sided rate PSD of the model terms (random terms only)."""
     w = 2.0 * np.pi * f
     S = np.zeros_like(f)
-    S += theta.get("Q", 0.0) * w**2 * tau0
+    # quantization: white angle noise of the samples, differenced: (4 Q^2 / tau0) sin^2(pi f tau0) ([IEEE952] C.2
+    # before its small-f form tau0 Q^2 w^2, which overstates the PSD near Nyquist by up to pi^2 / 4 and so the
+    # variance of the short-tau AVAR points where Q dominates: Q intervals 1.25x too wide, z sd 0.8)
+    S += theta.get("Q", 0.0) * 4.0 * np.sin(np.pi * f * tau0) ** 2 / tau0
     S += theta.get("N", 0.0)
     S += theta.get("B", 0.0) / (2.0 * np.pi * f)
     S += theta.get("K", 0.0) / w**2
@@ -573,7 +582,7 @@ def fit_noise(
         def cov_at(th_vec):
             Vn = covariance(np.maximum(th_vec, 0.0), Xd)
             return Vn + delta * delta * np.diag(np.maximum(Xd @ th_vec, 1e-300) ** 2) if delta > 0 else Vn
-    theta, rss, cov, sd_all, bound_theta, lo_prof = _significant_terms(Xd, a, V, z2, cov_at)
+    theta, rss, cov, sd_all, bound_theta, (lo_prof, hi_prof) = _significant_terms(Xd, a, V, z2, cov_at)
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
@@ -585,25 +594,23 @@ def fit_noise(
         if k in bound_theta:
             ub_val = _theta_to_param(t, bound_theta[k], tc)
             params.append(_param(name, math.nan, 0.0, ub_val, sensor, "fit", True, ci_level))
+        elif t in _LONG_TAU_TERMS:
+            # B, K, R trade places at the long-tau end: the active-set Wald interval holds the terms the elimination
+            # dropped at zero, so their share of the long-tau AVAR is charged to the kept term with no uncertainty
+            # (B two-sided coverage 0.89-0.91 where K or R was dropped, benchmarks/coverage_noise.py). The interval
+            # is the profile-likelihood set with every other term free and non-negative ([VENZON1988]), the same
+            # set that decided the term is identified; the estimate stays the fit's
+            lo, hi = min(float(lo_prof[k]), th), max(float(hi_prof[k]), th)
+            se = _theta_to_param(t, th, tc) * ((hi - lo) / (2.0 * z2)) / (2.0 * th)
         else:
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
             # delta method: d sqrt(theta) = d theta / (2 sqrt(theta)) (Markov: also / T_c)
             se = _theta_to_param(t, th, tc) * sd / (2.0 * th)
-            params.append(
-                _param(
-                    name,
-                    _theta_to_param(t, th, tc),
-                    _theta_to_param(t, lo, tc),
-                    _theta_to_param(t, hi, tc),
-                    sensor,
-                    "fit",
-                    False,
-                    ci_level,
-                    se,
-                )
-            )
+        if k not in bound_theta:
+            params.append(_param(name, _theta_to_param(t, th, tc), _theta_to_param(t, lo, tc),
+                                 _theta_to_param(t, hi, tc), sensor, "fit", False, ci_level, se))
     if markov:
         # profile-likelihood set of T_c (an interval when the Markov term is supported, else the grid searched)
         tlo, thi = (float(profile.min()), float(profile.max())) if profile is not None else (tc, tc)
@@ -689,7 +696,7 @@ def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float, 
     between the two reports); with ``cov_at`` (theta -> V) the bound is tested at its own covariance
     (:func:`_bound_at_null`). Returns theta (dropped terms 0), the GLS chi2, the active-set covariance,
     one standard deviation per term, {index: upper bound on theta} of the terms reported as bounds and the
-    profile interval's lower ends.
+    profile interval's (lower ends, upper ends).
     """
     p = Xd.shape[1]
     L = np.linalg.cholesky(V)
@@ -712,7 +719,7 @@ def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float, 
             continue
         bounds[k] = float(hi_p[k]) if cov_at is None else max(float(hi_p[k]),
                                                               _bound_at_null(Xd, a, V, k, z2 * z2, cov_at))
-    return theta, rss, cov, sd, bounds, lo_p
+    return theta, rss, cov, sd, bounds, (lo_p, hi_p)
 
 
 def _profile_limits(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, crit: float, only=None):
