@@ -285,36 +285,26 @@ def moderated_variance(s2: np.ndarray, d: np.ndarray) -> tuple[float, float]:
     method of moments on log variances (limma ``fitFDist``): e = log s^2 - digamma(d/2) + log(d/2) has mean
     log s0^2 + digamma(d0/2) - log(d0/2) and variance trigamma(d/2) + trigamma(d0/2). d0 = inf when the log
     variances scatter no more than sampling alone explains."""
-    s2 = np.asarray(s2, float)
-    d = np.asarray(d, float)
-    ok = (s2 > 0) & np.isfinite(s2) & (d > 0)
-    s2, d = s2[ok], d[ok]
-    if s2.size < 3:
-        return float("nan"), 0.0
-    e = np.log(s2) - special.digamma(d / 2) + np.log(d / 2)
-    ebar = float(e.mean())
-    ve = float(np.var(e, ddof=1) - np.mean(special.polygamma(1, d / 2)))
-    if ve <= 0:
-        return float(np.exp(ebar)), float("inf")
-    d0 = 2.0 * _trigamma_inverse(ve)
-    return float(np.exp(ebar + special.digamma(d0 / 2) - np.log(d0 / 2))), float(d0)
+    s0, d0 = moderated_variance_trend(s2, d, np.zeros(np.shape(s2)), degree=0, min_n=3)
+    return float(s0[0]) if s0.size else float("nan"), d0
 
 
-def moderated_variance_trend(s2: np.ndarray, d: np.ndarray, x: np.ndarray, degree: int = 2
-                              ) -> tuple[np.ndarray, float]:
+def moderated_variance_trend(s2: np.ndarray, d: np.ndarray, x: np.ndarray, degree: int = 2,
+                              min_n: int | None = None) -> tuple[np.ndarray, float]:
     """[SMYTH2004]'s prior with a trend: the log-variance prior mean is a polynomial of degree ``degree`` in the
     covariate ``x`` (limma's ``eBayes(trend=TRUE)``, [LAW2014]), d0 from the scatter about the trend.
 
     Used for the Allan views, whose replicate spread varies smoothly with tau (a record's own IEEE 952 fit absorbs
     more of the curve near the ends of the tau range: on the navigation noise-only case the replicate sd of the
     sensor-pooled shape views ran from 0.17 to 0.66 across octaves, so a constant prior read that trend as
-    scatter, d0 ~ 2.5, and left a z = 6.0 view at 6.5 dof). Returns the per-view prior variance s0^2 and d0."""
+    scatter, d0 ~ 2.5, and left a z = 6.0 view at 6.5 dof). ``degree`` 0 is the constant prior
+    (:func:`moderated_variance`). Returns the per-view prior variance s0^2 and d0."""
     s2 = np.asarray(s2, float)
     d = np.asarray(d, float)
     x = np.asarray(x, float)
     s0 = np.full(s2.size, np.nan)
     ok = (s2 > 0) & np.isfinite(s2) & (d > 0) & np.isfinite(x)
-    if ok.sum() < degree + 4:
+    if ok.sum() < (degree + 4 if min_n is None else min_n):
         return s0, 0.0
     e = np.log(s2[ok]) - special.digamma(d[ok] / 2) + np.log(d[ok] / 2)
     X = np.vander(x[ok] - x[ok].mean(), degree + 1)
