@@ -445,3 +445,54 @@ def test_twin_file_is_a_device_model_that_simulate_replays(null_archive, tmp_pat
     assert r.exit_code == 0, r.output
     assert (tmp_path / "rep" / "NULL-T" / run_dir.name / "_COMPLETE").exists()
 
+
+
+def _two_run_design(tmp_path):
+    """One device with one position and one rate run (the engine tests' archive): g^2 columns live in the
+    position run only, so its fold trains on a run without them."""
+    from prod_helpers import DEVICES, write_realistic_archive
+
+    from assets_lib.simreal.diagnose import _rk
+
+    write_realistic_archive(tmp_path, devices=DEVICES[:1])
+    exp = load_device(tmp_path, DEVICES[0][0])
+    twin = fit_twin(exp)
+    w = real_rate_windows(exp.runs, exp.processed, exp.imu, twin.rails)
+    return build_design(exp.runs, exp.processed, twin, exp.imu, w, _rk(twin))
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_columns_absent_from_a_training_fold_are_dropped_and_reported(tmp_path):
+    """Held-out solves on columns that the training runs do not carry overflowed (1e+30 coefficients from a
+    regularised solve of a ~1e-17 Gram); they are dropped, the fold predicts with the base terms (gain 0) and the
+    fold is reported; any RuntimeWarning fails this test."""
+    d = _two_run_design(tmp_path)
+    t = at.Totals.of(d)
+    scores = {at.GROUPS[gi][:2]: at.score_group(t, gi, []) for gi in range(len(at.GROUPS))}
+    g2 = [s for (f, _c), s in scores.items() if f == "g_sensitivity" and s is not None]
+    assert g2 and all(s.absent_folds == s.folds for s in g2)  # carried by the position run alone
+    assert all(s.fold_gains == [0.0] * len(s.folds) and not s.fold_ok() for s in g2)
+    assert all(np.isfinite(s.delta_lpd) for s in scores.values() if s is not None)
+    assert t.absent  # (held-out run, column) pairs recorded
+    sel = at.select(d)
+    assert all(np.isfinite(s.delta_lpd) for s in sel.first_step)
+    assert np.isfinite(at.heldout_error(d, [s.atom for s in sel.accepted]))
+
+
+def test_shrink_ratio_compares_each_error_with_its_own_twins_floor():
+    """An effect that inflated the twin's noise: after the fix the real error sits below the base floor but on the
+    augmented replicates' floor; the ratio is ~1 (not 1 + deficit / gap) and its interval holds 1."""
+    from assets_lib.simreal.diagnose import shrink_ratio
+
+    rng = np.random.default_rng(3)
+    floor = 10_000 + 100 * rng.standard_normal(8)  # base replicates
+    floor_aug = 9_400 + 100 * rng.standard_normal(8)  # augmented replicates (same inflated noise, effect refitted)
+    E_base, E_model = 12_000.0, 9_420.0
+    sh = shrink_ratio(E_base, E_model, floor, floor_aug)
+    old = (E_base - E_model) / (E_base - floor.mean())
+    assert old > 1.25  # the previous reading against the base floor
+    assert 0.9 < sh["ratio"] <= 1.05 and sh["ratio_ci"][0] < 1.0 < sh["ratio_ci"][1]
+    assert abs(sh["remaining_floor_sd"]) < 1.5 and sh["initial_floor_sd"] > 10
+    assert sh["floor"]["n_augmented"] == 8
+    # without augmented replicates both gaps use the base floor (the previous definition)
+    assert shrink_ratio(E_base, E_model, floor, [])["ratio"] == pytest.approx(old)

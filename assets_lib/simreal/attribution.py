@@ -48,6 +48,12 @@ def _solve(G: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.linalg.lstsq(G, b, rcond=None)[0]
 
 
+#: a column is absent from a fold's training set when its training Gram diagonal is below this fraction of its
+#: diagonal over all runs (e.g. g^2 columns in a device with one position run: held out, the training rate run
+#: carries 1e-30 of their energy, and the solve returned 1e+30-scale coefficients that overflowed the matmul)
+ABSENT_REL = 1e-9
+
+
 @dataclass
 class Totals:
     """Per-run Gram sums over blocks."""
@@ -56,15 +62,30 @@ class Totals:
     b: np.ndarray  # (n_runs, P)
     s: np.ndarray  # (n_runs,)
     carries: np.ndarray
+    #: (held-out run, column) pairs dropped because the column is absent from that fold's training runs
+    absent: set = field(default_factory=set)
 
     @classmethod
     def of(cls, d: Design, blocks=(0, 1, 2)) -> Totals:
         bl = list(blocks)
         return cls(d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries)
 
+    def trained_cols(self, cols: list[int], k: int | None) -> list[int]:
+        """``cols`` without those absent from the training runs of fold ``k`` (recorded in ``absent``): their
+        coefficients are not estimable there, so the fold predicts with the base terms alone (its gain is 0)."""
+        if k is None or not cols:
+            return list(cols)
+        dt = np.einsum("ii->i", self.G.sum(0) - self.G[k])[cols]
+        da = np.einsum("ii->i", self.G.sum(0))[cols]
+        keep = [c for c, x, y in zip(cols, dt, da) if x > ABSENT_REL * y and x > 0]
+        if len(keep) < len(cols):
+            self.absent.update((int(k), int(c)) for c in cols if c not in keep)
+        return keep
+
     def heldout_sse(self, cols: list[int], k: int) -> float:
         Gt = self.G.sum(0) - self.G[k]
         bt = self.b.sum(0) - self.b[k]
+        cols = self.trained_cols(cols, k)
         if not cols:
             return float(self.s[k])
         g = _solve(Gt[np.ix_(cols, cols)], bt[cols])
@@ -75,6 +96,7 @@ class Totals:
         Gt = self.G.sum(0) - (self.G[k] if k is not None else 0)
         bt = self.b.sum(0) - (self.b[k] if k is not None else 0)
         st = self.s.sum() - (self.s[k] if k is not None else 0)
+        cols = self.trained_cols(cols, k)
         if not cols:
             return float(st)
         g = _solve(Gt[np.ix_(cols, cols)], bt[cols])
@@ -92,6 +114,10 @@ class Score:
     folds: list  # run indices
     shape: float | None
     atom: int
+    #: folds (run indices) whose training runs lack some of the chosen atom's columns (gain 0 there)
+    absent_folds: list = field(default_factory=list)
+    #: the gate this score was tested against (None: not tested yet)
+    gate: float | None = None
 
     @property
     def n_pos(self) -> int:
@@ -112,7 +138,7 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
     if carry.size == 0:
         return None
     base = cols_of(base_atoms)
-    gains = []
+    gains, absent = [], []
     for k in carry:
         best = None
         for a in atoms:  # shape chosen on the training runs
@@ -120,9 +146,12 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
             if best is None or sse < best[0]:
                 best = (sse, a)
         a = best[1]
+        if len(t.trained_cols(list(ATOMS[a].cols), int(k))) < len(ATOMS[a].cols):
+            absent.append(int(k))
         gains.append(t.heldout_sse(base, k) - t.heldout_sse(base + list(ATOMS[a].cols), k))
     full = min(atoms, key=lambda a: t.train_sse(base + list(ATOMS[a].cols), None))
-    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], [int(k) for k in carry], ATOMS[full].shape, full)
+    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], [int(k) for k in carry], ATOMS[full].shape, full,
+                 absent)
 
 
 def _separable(best: Score, other: Score) -> bool:
@@ -189,10 +218,30 @@ def first_step_scores(t: Totals) -> dict:
     return out
 
 
-def select(d: Design, thresholds: dict | None = None) -> Selection:
-    """Greedy forward selection (module docstring). ``thresholds``: group -> calibrated gate (>= GATE)."""
+def step_gates(null_totals: list, base_atoms: list[int], null_sd: float) -> dict:
+    """group -> sim-vs-sim gate of a selection step: the larger of 2 ln 1000 and mean + ``null_sd`` sd of the
+    candidate's score *at this step* (the accepted ``base_atoms`` in the model, as on the real data) over the
+    base-twin replicates (simreal.md sec. 5.2). At the first step (``base_atoms`` empty) this is the first-step
+    calibration; a later step is calibrated the same way, conditional on what has been accepted."""
+    vals: dict = {}
+    for tr in null_totals:
+        for gi in range(len(GROUPS)):
+            s = score_group(tr, gi, base_atoms)
+            if s is not None:
+                vals.setdefault(gi, []).append(s.delta_lpd)
+    return {gi: max(GATE, float(np.mean(v) + null_sd * np.std(v, ddof=1))) if len(v) > 2 else GATE
+            for gi, v in vals.items()}
+
+
+def select(d: Design, thresholds: dict | None = None, null_designs: list | None = None,
+           null_sd: float = 5.0) -> Selection:
+    """Greedy forward selection (module docstring). ``thresholds``: group -> calibrated gate (>= GATE) of the first
+    step. With ``null_designs`` (designs of base-twin replicates), every later step's gates are recalibrated on
+    them conditional on the atoms accepted so far (:func:`step_gates`); without, ``thresholds`` serve every step.
+    The gate each accepted score passed is kept in ``Score.gate``."""
     t = Totals.of(d)
     thr = thresholds or {}
+    null_t = [Totals.of(nd) for nd in null_designs] if null_designs else []
     accepted: list[Score] = []
     amb: list[list[int]] = []
     first: list = []
@@ -208,7 +257,11 @@ def select(d: Design, thresholds: dict | None = None) -> Selection:
                 scores.append(s)
         if step == 0:
             first = scores
-        ok = [s for s in scores if s.delta_lpd > max(GATE, thr.get(s.group, GATE)) and s.fold_ok()]
+        if null_t and (step > 0 or not thresholds):
+            thr = step_gates(null_t, base_atoms, null_sd)
+        for s in scores:
+            s.gate = max(GATE, thr.get(s.group, GATE))
+        ok = [s for s in scores if s.delta_lpd > s.gate and s.fold_ok()]
         if not ok:
             break
         best = max(ok, key=lambda s: s.delta_lpd)

@@ -139,6 +139,10 @@ def plots(diag) -> dict:
     E_base, E_model, floor = diag.plots["E"]
     fig, ax = plt.subplots(figsize=(5, 3))
     ax.hist(floor, bins=max(5, len(floor) // 3), color="0.7", label="sim-vs-sim floor (base replicates)")
+    fa = diag.plots.get("E_floor_aug")
+    if fa is not None and len(fa):
+        ax.hist(fa, bins=max(5, len(fa) // 3), color="C2", alpha=0.4,
+                label="floor after (augmented replicates, effects refitted)")
     ax.axvline(E_base, color="C3", label="real, base twin")
     ax.axvline(E_model, color="C2", ls="--", label="real, augmented twin")
     ax.set_xlabel("held-out whitened error E")
