@@ -479,20 +479,18 @@ def test_columns_absent_from_a_training_fold_are_dropped_and_reported(tmp_path):
     assert np.isfinite(at.heldout_error(d, [s.atom for s in sel.accepted]))
 
 
-def test_shrink_ratio_compares_each_error_with_its_own_twins_floor():
-    """An effect that inflated the twin's noise: after the fix the real error sits below the base floor but on the
-    augmented replicates' floor; the ratio is ~1 (not 1 + deficit / gap) and its interval holds 1."""
+def test_shrink_ratio_is_capped_at_one_when_the_model_goes_below_the_floor():
+    """WH-019's figures (R = 5): E_model below the base floor (the effect inflated the twin's noise, so the floor is
+    too high): the ratio is capped at 1, the uncapped ratio and the floor are reported; an ordinary case is not
+    touched."""
     from assets_lib.simreal.diagnose import shrink_ratio
 
-    rng = np.random.default_rng(3)
-    floor = 10_000 + 100 * rng.standard_normal(8)  # base replicates
-    floor_aug = 9_400 + 100 * rng.standard_normal(8)  # augmented replicates (same inflated noise, effect refitted)
-    E_base, E_model = 12_000.0, 9_420.0
-    sh = shrink_ratio(E_base, E_model, floor, floor_aug)
-    old = (E_base - E_model) / (E_base - floor.mean())
-    assert old > 1.25  # the previous reading against the base floor
-    assert 0.9 < sh["ratio"] <= 1.05 and sh["ratio_ci"][0] < 1.0 < sh["ratio_ci"][1]
-    assert abs(sh["remaining_floor_sd"]) < 1.5 and sh["initial_floor_sd"] > 10
-    assert sh["floor"]["n_augmented"] == 8
-    # without augmented replicates both gaps use the base floor (the previous definition)
-    assert shrink_ratio(E_base, E_model, floor, [])["ratio"] == pytest.approx(old)
+    z = np.array([-1.2, -0.4, 0.1, 0.5, 1.0])
+    floor = 108_313.3 + 427.6 * (z - z.mean()) / z.std(ddof=1)
+    sh = shrink_ratio(111_447.7, 105_890.9, floor, [108_128.0, 108_050.0, 108_200.0, 108_150.0])
+    assert sh["capped"] and sh["ratio"] == 1.0 and sh["ratio_uncapped"] == pytest.approx(1.773, abs=1e-3)
+    assert sh["ratio_ci"][1] == 1.0 and sh["ratio_ci"][0] <= 1.0
+    assert sh["remaining_floor_sd"] == pytest.approx(-5.66, abs=0.01) and sh["initial_floor_sd"] == pytest.approx(7.33, abs=0.01)
+    assert sh["floor"]["n_augmented"] == 4
+    ok = shrink_ratio(12_000.0, 10_100.0, floor - 98_313.3)
+    assert not ok["capped"] and ok["ratio"] == pytest.approx(0.95) and ok["ratio_ci"][0] < 0.95 < ok["ratio_ci"][1]

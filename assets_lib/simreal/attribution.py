@@ -118,6 +118,8 @@ class Score:
     absent_folds: list = field(default_factory=list)
     #: the gate this score was tested against (None: not tested yet)
     gate: float | None = None
+    #: Bonferroni-adjusted predictive p of the score under the replicates at its step (``null_p_step``)
+    p_step: float | None = None
 
     @property
     def n_pos(self) -> int:
@@ -223,14 +225,34 @@ def step_gates(null_totals: list, base_atoms: list[int], null_sd: float) -> dict
     candidate's score *at this step* (the accepted ``base_atoms`` in the model, as on the real data) over the
     base-twin replicates (simreal.md sec. 5.2). At the first step (``base_atoms`` empty) this is the first-step
     calibration; a later step is calibrated the same way, conditional on what has been accepted."""
+    return {gi: max(GATE, m + null_sd * sd) if n > 2 else GATE
+            for gi, (m, sd, n) in step_null(null_totals, base_atoms).items()}
+
+
+def step_null(null_totals: list, base_atoms: list[int]) -> dict:
+    """group -> (mean, sd, n) of the candidate's score at this step over the replicates (``step_gates``)."""
     vals: dict = {}
     for tr in null_totals:
         for gi in range(len(GROUPS)):
             s = score_group(tr, gi, base_atoms)
             if s is not None:
                 vals.setdefault(gi, []).append(s.delta_lpd)
-    return {gi: max(GATE, float(np.mean(v) + null_sd * np.std(v, ddof=1))) if len(v) > 2 else GATE
+    return {gi: (float(np.mean(v)), float(np.std(v, ddof=1)) if len(v) > 1 else float("nan"), len(v))
             for gi, v in vals.items()}
+
+
+def null_p_step(score: float, null: tuple, m: int) -> float | None:
+    """Predictive p of ``score`` under the replicates' (mean, sd, n) of its candidate at this step (Student t with
+    n - 1 dof, scale sd sqrt(1 + 1/n): the sd is itself estimated from n replicates), times the ``m`` candidates
+    scored at the step (Bonferroni): how often the step's best null candidate would reach it. Reported beside an
+    accepted effect; the acceptance gate stays mean + 5 sd (module docstring)."""
+    from scipy.stats import t as student_t
+
+    mean, sd, n = null
+    if n < 3 or not np.isfinite(sd) or sd <= 0:
+        return None
+    z = (score - mean) / (sd * np.sqrt(1.0 + 1.0 / n))
+    return float(min(1.0, m * student_t.sf(z, n - 1)))
 
 
 def select(d: Design, thresholds: dict | None = None, null_designs: list | None = None,
@@ -257,10 +279,12 @@ def select(d: Design, thresholds: dict | None = None, null_designs: list | None 
                 scores.append(s)
         if step == 0:
             first = scores
+        nul = step_null(null_t, base_atoms) if null_t else {}
         if null_t and (step > 0 or not thresholds):
-            thr = step_gates(null_t, base_atoms, null_sd)
+            thr = {gi: max(GATE, m + null_sd * sd) if n > 2 else GATE for gi, (m, sd, n) in nul.items()}
         for s in scores:
             s.gate = max(GATE, thr.get(s.group, GATE))
+            s.p_step = null_p_step(s.delta_lpd, nul[s.group], len(scores)) if s.group in nul else None
         ok = [s for s in scores if s.delta_lpd > s.gate and s.fold_ok()]
         if not ok:
             break
