@@ -25,6 +25,9 @@ GATE = 2.0 * np.log(1000.0)
 TIE = 2.0 * np.log(10.0)
 ALIAS_R2 = 0.95
 MAX_EFFECTS = 4
+#: family-wise level of a selection step: the best null candidate of the step reaches an accepted score with at
+#: most this probability (``null_p_step``; every step, the first included)
+ALPHA_STEP = 0.05
 
 
 def groups() -> list[tuple[str, int | None, list[int]]]:
@@ -244,8 +247,11 @@ def step_null(null_totals: list, base_atoms: list[int]) -> dict:
 def null_p_step(score: float, null: tuple, m: int) -> float | None:
     """Predictive p of ``score`` under the replicates' (mean, sd, n) of its candidate at this step (Student t with
     n - 1 dof, scale sd sqrt(1 + 1/n): the sd is itself estimated from n replicates), times the ``m`` candidates
-    scored at the step (Bonferroni): how often the step's best null candidate would reach it. Reported beside an
-    accepted effect; the acceptance gate stays mean + 5 sd (module docstring)."""
+    scored at the step (Bonferroni): how often the step's best null candidate would reach it. A candidate is
+    accepted only when this is <= ``ALPHA_STEP`` as well as above the mean + 5 sd gate: with R = 5 replicates the
+    sd is estimated with 4 dof and ~37 candidates are scored per step, so mean + 5 sd alone lets a candidate through
+    about once in 8 steps (WH-012: accel_x temperature scale factor 14.3 against the replicates' -4.2 +- 3.1, gate
+    13.8; p_step 0.095)."""
     from scipy.stats import t as student_t
 
     mean, sd, n = null
@@ -285,7 +291,8 @@ def select(d: Design, thresholds: dict | None = None, null_designs: list | None 
         for s in scores:
             s.gate = max(GATE, thr.get(s.group, GATE))
             s.p_step = null_p_step(s.delta_lpd, nul[s.group], len(scores)) if s.group in nul else None
-        ok = [s for s in scores if s.delta_lpd > s.gate and s.fold_ok()]
+        ok = [s for s in scores if s.delta_lpd > s.gate and s.fold_ok()
+              and (s.p_step is None or s.p_step <= ALPHA_STEP)]
         if not ok:
             break
         best = max(ok, key=lambda s: s.delta_lpd)
