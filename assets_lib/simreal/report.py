@@ -84,6 +84,10 @@ def answers(rep: dict) -> list[str]:
             (f"{ci[1] * 100:.0f} %)" if ci[1] is not None else "unbounded)")
         out.append(f"How far it shrinks: modelled, the held-out gap shrinks by {sh['ratio'] * 100:.0f} %{ci_s}; "
                    f"{sh['remaining_floor_sd']:.1f} floor-sd remain. Verdict: {v.replace('_', ' ')}.")
+        if sh.get("capped"):
+            out.append(f"The shrink is capped at 100 % (uncapped {sh['ratio_uncapped'] * 100:.0f} %): after the fix the "
+                       "held-out error lies below the sim-vs-sim floor, i.e. the twin's noise, fitted from runs that "
+                       "carry the effect, is above the real noise, not an over-explained gap.")
         for e in rep["effects"]:
             lf = e.get("lack_of_fit")
             if lf and lf.get("significant"):
