@@ -5,8 +5,9 @@ held-out gain, summed over the runs that carry its signature, of the whitened SS
 refitted on the held-out run (``design.py`` has projected them out). ``delta_lpd`` is reported on the deviance
 scale (twice the held-out log predictive gain), so the gate "likelihood ratio 1000:1" reads
 ``delta_lpd > 2 ln 1000 = 13.8``. Accept the best candidate if it passes that gate, the sim-vs-sim calibrated
-gate (the same score on replicates of the base twin, ``threshold``), and is positive in all but one fold (at
-least two folds). Shape parameters (warm-up tau) are chosen on the training runs of each fold.
+gate (mean + 5 sd of the same score, at the same step, on replicates of the base twin: ``step_gates``), the
+family-wise predictive p of the step (``null_p_step`` <= ``ALPHA_STEP``), and is positive in all but one fold (at
+least two folds). Held-out solves drop columns absent from a fold's training runs (``Totals.trained_cols``). Shape parameters (warm-up tau) are chosen on the training runs of each fold.
 
 Ambiguity (simreal.md sec. 4.2 step 4 and 4.4): with every acceptance, candidates that pass the gates and tie
 (within 2 ln 10 overall, or the accepted one ahead in fewer than K - 1 of the common folds), or whose columns

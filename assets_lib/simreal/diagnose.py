@@ -3,11 +3,12 @@
 1. twin = base model from the device's fits (``twin.fit_twin``); R replicates through the same chain.
 2. where: views calibrated by the replicates, BH q (``views.py``).
 3. which: greedy CV-dLPD on the real design (``attribution.py``); the gate of each candidate is the larger of
-   2 ln 1000 and the sim-vs-sim calibrated level ``mean + NULL_SD x sd`` of its first-step score over the base
-   replicates (simreal.md sec. 5.2: calibrate the threshold by null simulations of the actual plan).
+   2 ln 1000 and the sim-vs-sim calibrated level ``mean + NULL_SD x sd`` of its score at that step over the base
+   replicates (simreal.md sec. 5.2: calibrate the threshold by null simulations of the actual plan), with a
+   family-wise predictive p <= ``attribution.ALPHA_STEP`` under the same replicates.
 4. how far it shrinks: held-out error E (leave-one-run-out, whitened SSE) of base and augmented model against the
-   sim-vs-sim floor of the base replicates; shrink = (E_base - E_model) / (E_base - E_floor); remaining gap in
-   floor sd; then the views re-run with R_aug replicates of the augmented twin, which also give the
+   sim-vs-sim floor of the base replicates; shrink = (E_base - E_model) / (E_base - E_floor), capped at 1
+   (``shrink_ratio``); remaining gap in floor sd; then the views re-run with R_aug replicates of the augmented twin, which also give the
    parametric-bootstrap intervals of the magnitudes (refit on each augmented replicate).
 
 Verdict: effects accepted -> ``explained`` (no deterministic view significant after the fix) or
