@@ -492,5 +492,7 @@ def test_shrink_ratio_is_capped_at_one_when_the_model_goes_below_the_floor():
     assert sh["ratio_ci"][1] == 1.0 and sh["ratio_ci"][0] <= 1.0
     assert sh["remaining_floor_sd"] == pytest.approx(-5.66, abs=0.01) and sh["initial_floor_sd"] == pytest.approx(7.33, abs=0.01)
     assert sh["floor"]["n_augmented"] == 4
+    near = shrink_ratio(1_030.0, 926.0, 1_014.0 + 53.0 * (z - z.mean()) / z.std(ddof=1))  # WH-014: gap 0.3 floor sd
+    assert near["capped"] and near["ratio_ci"][1] == 1.0 and near["ratio_uncapped"] > 6
     ok = shrink_ratio(12_000.0, 10_100.0, floor - 98_313.3)
     assert not ok["capped"] and ok["ratio"] == pytest.approx(0.95) and ok["ratio_ci"][0] < 0.95 < ok["ratio_ci"][1]

@@ -275,7 +275,10 @@ def shrink_ratio(E_base: float, E_model: float, floor: np.ndarray, floor_aug: np
         ci = [float(min(cands)), float(max(cands)) if hi_d > 0 else None] if cands else [None, None]
     capped = bool(raw > 1.0)
     ratio = min(raw, 1.0)
-    ratio_ci = [None if c is None else float(min(c, 1.0)) for c in ci]
+    # capped like the ratio; an upper bound that was unbounded (floor + 1.96 sd above E_base) becomes 1
+    ratio_ci = [None if ci[0] is None else float(min(ci[0], 1.0)), 1.0 if ci[1] is None else float(min(ci[1], 1.0))]
+    if gap0 <= 0:
+        ratio_ci = [0.0, 0.0]
     return {"ratio": float(ratio), "ratio_ci": ratio_ci, "initial_floor_sd": float(init_sd),
             "remaining_floor_sd": float(rem_sd), "ratio_uncapped": float(raw), "ratio_ci_uncapped": ci,
             "capped": capped,
