@@ -496,3 +496,24 @@ def test_shrink_ratio_is_capped_at_one_when_the_model_goes_below_the_floor():
     assert near["capped"] and near["ratio_ci"][1] == 1.0 and near["ratio_uncapped"] > 6
     ok = shrink_ratio(12_000.0, 10_100.0, floor - 98_313.3)
     assert not ok["capped"] and ok["ratio"] == pytest.approx(0.95) and ok["ratio_ci"][0] < 0.95 < ok["ratio_ci"][1]
+
+
+def test_step_null_p_rejects_wh012s_second_effect_and_keeps_a_near_limit_one():
+    """null_p_step on WH-012's figures (R = 5, 37 candidates at the step): the accel_x temperature scale factor
+    (14.3 against the replicates' -4.15 +- 3.05) passes mean + 5 sd but not the family-wise level; WH-023's
+    near-limit warm-up (17.6 against -1.19 +- 1.38) passes both. Independent check: a Monte Carlo of the step's
+    best standardised null candidate reproduces the Bonferroni figure within its slack."""
+    m = 37
+    p_spur = at.null_p_step(14.28, (-4.15, 3.05, 5), m)
+    p_near = at.null_p_step(17.6, (-1.19, 1.38, 5), m)
+    assert -4.15 + 5 * 3.05 < 14.28 and p_spur > at.ALPHA_STEP
+    assert p_near < at.ALPHA_STEP / 4
+    rng = np.random.default_rng(0)
+    n = 20_000
+    reps = rng.standard_normal((n, m, 5))
+    new = rng.standard_normal((n, m))
+    z = (new - reps.mean(2)) / (reps.std(2, ddof=1) * np.sqrt(1.2))
+    t_spur = (14.28 + 4.15) / (3.05 * np.sqrt(1.2))
+    frac = float(np.mean(z.max(1) > t_spur))
+    assert 0.5 * p_spur < frac <= p_spur * 1.05  # Bonferroni bounds the family-wise rate, nearly tight here
+    assert at.null_p_step(1.0, (0.0, 1.0, 2), m) is None  # too few replicates: no p
