@@ -50,17 +50,42 @@ def _solve(G: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Totals:
-    """Per-run Gram sums over blocks."""
+    """Gram sums over blocks per held-out unit: one row per run (blocks A, B, C), then one row per power cycle
+    (block D, ``run_level.py``)."""
 
-    G: np.ndarray  # (n_runs, P, P)
-    b: np.ndarray  # (n_runs, P)
-    s: np.ndarray  # (n_runs,)
+    G: np.ndarray  # (n_rows, P, P)
+    b: np.ndarray  # (n_rows, P)
+    s: np.ndarray  # (n_rows,)
     carries: np.ndarray
+    #: fold of each row for the families with block-D columns: the row of its power cycle's block D (a run's rows
+    #: and its cycle's run-level rows form one fold), else the row itself
+    fold: np.ndarray | None = None
 
     @classmethod
-    def of(cls, d: Design, blocks=(0, 1, 2)) -> Totals:
-        bl = list(blocks)
-        return cls(d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries)
+    def of(cls, d: Design, blocks=(0, 1, 2, 3)) -> Totals:
+        bl = [b for b in blocks if b < 3]
+        G, b, s, c = d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries
+        n = G.shape[0]
+        fold = np.arange(n)
+        if 3 in blocks and d.gram_d is not None and len(d.gram_d):
+            G = np.concatenate([G, d.gram_d])
+            b = np.concatenate([b, d.xty_d])
+            s = np.concatenate([s, d.yty_d])
+            c = np.vstack([c, d.carries_d])
+            fold = np.array([n + rc if rc >= 0 else i for i, rc in enumerate(d.run_cycle)]
+                            + [n + k for k in range(len(d.gram_d))])
+        return cls(G, b, s, c, fold)
+
+    def fold_units(self, atoms: list[int]) -> list[list[int]]:
+        """Held-out units of a model (jackknife): rows carrying ``atoms``, grouped by power cycle when one of them
+        has block-D columns."""
+        carry = np.flatnonzero(self.carries[:, atoms].any(axis=1))
+        if self.fold is None or not any(_has_d(a) for a in atoms):
+            return [[int(k)] for k in carry]
+        out: dict = {}
+        for k in carry:
+            out.setdefault(int(self.fold[k]), []).append(int(k))
+        return list(out.values())
 
     def heldout_sse(self, cols: list[int], k: int) -> float:
         Gt = self.G.sum(0) - self.G[k]
@@ -122,7 +147,20 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
         a = best[1]
         gains.append(t.heldout_sse(base, k) - t.heldout_sse(base + list(ATOMS[a].cols), k))
     full = min(atoms, key=lambda a: t.train_sse(base + list(ATOMS[a].cols), None))
-    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], [int(k) for k in carry], ATOMS[full].shape, full)
+    folds = [int(k) for k in carry]
+    if t.fold is not None and _has_d(atoms[0]):
+        # folds per power cycle: a cycle's held-out gains (its runs' blocks A-C, its run-level rows) summed
+        agg: dict = {}
+        for k, g in zip(carry, gains):
+            agg[int(t.fold[k])] = agg.get(int(t.fold[k]), 0.0) + g
+        folds, gains = list(agg), list(agg.values())
+    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], folds, ATOMS[full].shape, full)
+
+
+def _has_d(atom: int) -> bool:
+    from assets_lib.simreal import effects as fx
+
+    return fx.has_block(ATOMS[atom].family, "D")
 
 
 def _separable(best: Score, other: Score) -> bool:
@@ -231,9 +269,9 @@ def select(d: Design, thresholds: dict | None = None) -> Selection:
         # whitened GLS covariance (X' C^-1 X)^-1 of the final model (pseudo-inverse: g^2 columns are only
         # identified up to a common part that the bias absorbs; magnitudes are identifiable contrasts)
         V = np.linalg.pinv(t.G.sum(0)[np.ix_(cols, cols)], rcond=1e-12)
-        carry = np.flatnonzero(t.carries[:, base_atoms].any(axis=1))
-        gj = [_solve((t.G.sum(0) - t.G[k])[np.ix_(cols, cols)], (t.b.sum(0) - t.b[k])[cols]) for k in carry] \
-            if carry.size >= 3 else []
+        units = t.fold_units(base_atoms)  # runs, or power cycles for block-D families
+        gj = [_solve((t.G.sum(0) - t.G[u].sum(0))[np.ix_(cols, cols)], (t.b.sum(0) - t.b[u].sum(0))[cols])
+              for u in units] if len(units) >= 3 else []
         k = 0
         for a in base_atoms:
             n = len(ATOMS[a].cols)
