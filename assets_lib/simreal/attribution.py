@@ -117,6 +117,9 @@ class Score:
     folds: list  # run indices
     shape: float | None
     atom: int
+    #: held-out gains per power cycle (fold ids of ``Totals.fold``), for comparing a candidate scored on run folds
+    #: with one scored on power-cycle folds (``_separable``)
+    cycle_gains: dict | None = None
 
     @property
     def n_pos(self) -> int:
@@ -148,13 +151,13 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
         gains.append(t.heldout_sse(base, k) - t.heldout_sse(base + list(ATOMS[a].cols), k))
     full = min(atoms, key=lambda a: t.train_sse(base + list(ATOMS[a].cols), None))
     folds = [int(k) for k in carry]
-    if t.fold is not None and _has_d(atoms[0]):
-        # folds per power cycle: a cycle's held-out gains (its runs' blocks A-C, its run-level rows) summed
-        agg: dict = {}
-        for k, g in zip(carry, gains):
-            agg[int(t.fold[k])] = agg.get(int(t.fold[k]), 0.0) + g
+    agg: dict = {}  # a power cycle's held-out gains (its runs' blocks A-C, its run-level rows) summed
+    for k, g in zip(carry, gains):
+        f = int(t.fold[k]) if t.fold is not None else int(k)
+        agg[f] = agg.get(f, 0.0) + float(g)
+    if t.fold is not None and _has_d(atoms[0]):  # folds per power cycle
         folds, gains = list(agg), list(agg.values())
-    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], folds, ATOMS[full].shape, full)
+    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], folds, ATOMS[full].shape, full, agg)
 
 
 def _has_d(atom: int) -> bool:
@@ -166,11 +169,13 @@ def _has_d(atom: int) -> bool:
 def _separable(best: Score, other: Score) -> bool:
     """simreal.md sec. 4.2 step 4: the best candidate is separable from another only if it is ahead in at least
     K - 1 of the K folds both are scored on (with fewer than two common folds: by the overall margin alone)."""
-    common = [k for k in best.folds if k in other.folds]
-    if len(common) < 2:
-        return True
     gb = dict(zip(best.folds, best.fold_gains))
     go = dict(zip(other.folds, other.fold_gains))
+    if (_has_d(best.atom) != _has_d(other.atom)) and best.cycle_gains and other.cycle_gains:
+        gb, go = best.cycle_gains, other.cycle_gains  # one on power-cycle folds: compare both per power cycle
+    common = [k for k in gb if k in go]
+    if len(common) < 2:
+        return True
     ahead = sum(gb[k] > go[k] for k in common)
     return ahead >= len(common) - 1
 
