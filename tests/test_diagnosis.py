@@ -92,6 +92,34 @@ def test_moderated_view_calibration_finds_a_shift_and_keeps_nulls_quiet():
     assert int(t["significant"].sum()) == 1
 
 
+def test_run_level_block_whitens_nulls_and_keeps_a_ramp_between_runs():
+    """Block D (``run_level.py``): two runs of one power cycle (rate-like: bias + slope per run; position-like: bias),
+    1/f-free white plateau noise. Under the null the whitened, cycle-projected rows are standard normal (sum of
+    squares ~ chi^2 with K - rank dof); a bias ramp between the runs is recovered by its run-level column."""
+    from assets_lib.simreal import run_level as rl
+
+    rng = np.random.default_rng(3)
+    t1, t2 = np.arange(20) * 30.0 + 15.0, 1500.0 + np.arange(12) * 30.0 + 15.0
+    sd = 1e-5
+    N1, N2 = np.column_stack([np.ones(20), t1 - t1.mean()]), np.ones((12, 1))
+    L1, L2 = np.eye(20) / sd, np.eye(12) / sd
+
+    def rows(k):
+        ys = [k * t + sd * rng.standard_normal(t.size) for t in (t1, t2)]
+        es = [rl.entry(i, 2, 0, Li, N, names, y, t[:, None], np.full(t.size, sd**2), t, np.full(t.size, 30.0),
+                       np.ones(1)) for i, (Li, N, names, y, t) in
+              enumerate(((L1, N1, ("1", "slope"), ys[0], t1), (L2, N2, ("1",), ys[1], t2)))]
+        return rl.cycle_rows(es, 0.0, 0.0)
+
+    ss = [float(y @ y) for y, _ in (rows(0.0) for _ in range(400))]
+    assert rows(0.0)[0].size == 1  # 3 run-level numbers, 2 shared columns (bias; slope only in run 1)
+    assert np.mean(ss) == pytest.approx(1.0, abs=0.15)  # chi^2(1)
+    y, X = rows(2e-8)
+    k_hat = float(X[:, 0] @ y / (X[:, 0] @ X[:, 0]))
+    se = 1.0 / np.sqrt(float(X[:, 0] @ X[:, 0]))
+    assert abs(k_hat - 2e-8) < 4 * se and 2e-8 / se > 5  # between-run lever: well above the noise
+
+
 def test_ambiguity_when_the_winner_is_not_ahead_in_k_minus_1_folds():
     """simreal sec. 4.2 step 4: a candidate the winner beats overall by more than 2 ln 10 but in only 4 of 6 folds
     is not separable from it (the self-heating design of WH-027: temperature 178.3 vs bias ramp 172.0)."""
