@@ -216,11 +216,12 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                 except np.linalg.LinAlgError:
                     L = np.diag(s[idx])
                 Li = np.linalg.inv(L)
-                off = float(bias_offset[inp.run_id][j]) if bias_offset and inp.run_id in bias_offset else 0.0
-                e = run_level.entry(ri, j, inp.power_cycle, Li, N, nuisance_names(inp.kind, j), y[idx], X, D,
-                                    sub["t_on"], tlen, D_COLS, off)
-                if e is not None:
-                    d_entries.append(e)
+                if j in run_level.CHANNELS:
+                    off = float(bias_offset[inp.run_id][j]) if bias_offset and inp.run_id in bias_offset else 0.0
+                    e = run_level.entry(ri, j, inp.power_cycle, Li, N, nuisance_names(inp.kind, j), y[idx], X, D,
+                                        sub["t_on"], tlen, D_COLS, off)
+                    if e is not None:
+                        d_entries.append(e)
                 yr, Xr = _project(Li @ y[idx], Li @ X, Li @ N)
                 Q = _orth(Li @ N)
                 plan_key = (inp.kind, len(getattr(getattr(inp.manifest, "plan", None), "steps", ()) or ()))

@@ -44,6 +44,13 @@ import numpy as np
 
 from assets_lib.calibration.fit_core import log_kernel
 
+#: output channels with block-D rows: the gyros. On the quick tier's null devices the accelerometers' run-level
+#: rows were over-dispersed against the twin's noise (sum of squares 20.2 and 23.8 for 9 rows, chi^2(9), on
+#: WH-000 accel_y and WH-001 accel_z; the gyros' 3-7): the twin's accelerometer bias instability does not describe
+#: their between-run scatter, and the replicates (simulated from that twin) cannot calibrate what it lacks
+#: (docs/simreal.md, "Run-level block (session 6)")
+CHANNELS = (0, 1, 2)
+
 
 @dataclass(frozen=True)
 class RunEntry:
