@@ -120,7 +120,7 @@ def cycle_rows(entries: list[RunEntry], tau2: float, k2: float):
     X = Li @ np.vstack([e.Z for e in entries])
     Q = _orth(Li @ M)
     # orthonormal basis of the complement of the cycle's nuisance: K - rank rows
-    u, s, _ = np.linalg.svd(np.eye(K) - Q @ Q.T)
+    u = np.linalg.svd(np.eye(K) - Q @ Q.T)[0]
     B = u[:, : K - Q.shape[1]]
     if B.shape[1] == 0:
         return None
