@@ -60,19 +60,44 @@ ABSENT_REL = 1e-9
 
 @dataclass
 class Totals:
-    """Per-run Gram sums over blocks."""
+    """Gram sums over blocks per held-out unit: one row per run (blocks A, B, C), then one row per power cycle
+    (block D, ``run_level.py``)."""
 
-    G: np.ndarray  # (n_runs, P, P)
-    b: np.ndarray  # (n_runs, P)
-    s: np.ndarray  # (n_runs,)
+    G: np.ndarray  # (n_rows, P, P)
+    b: np.ndarray  # (n_rows, P)
+    s: np.ndarray  # (n_rows,)
     carries: np.ndarray
-    #: (held-out run, column) pairs dropped because the column is absent from that fold's training runs
+    #: fold of each row for the families with block-D columns: the row of its power cycle's block D (a run's rows
+    #: and its cycle's run-level rows form one fold), else the row itself
+    fold: np.ndarray | None = None
+    #: (held-out row, column) pairs dropped because the column is absent from that fold's training rows
     absent: set = field(default_factory=set)
 
     @classmethod
-    def of(cls, d: Design, blocks=(0, 1, 2)) -> Totals:
-        bl = list(blocks)
-        return cls(d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries)
+    def of(cls, d: Design, blocks=(0, 1, 2, 3)) -> Totals:
+        bl = [b for b in blocks if b < 3]
+        G, b, s, c = d.gram[:, bl].sum(1), d.xty[:, bl].sum(1), d.yty[:, bl].sum(1), d.carries
+        n = G.shape[0]
+        fold = np.arange(n)
+        if 3 in blocks and d.gram_d is not None and len(d.gram_d):
+            G = np.concatenate([G, d.gram_d])
+            b = np.concatenate([b, d.xty_d])
+            s = np.concatenate([s, d.yty_d])
+            c = np.vstack([c, d.carries_d])
+            fold = np.array([n + rc if rc >= 0 else i for i, rc in enumerate(d.run_cycle)]
+                            + [n + k for k in range(len(d.gram_d))])
+        return cls(G, b, s, c, fold)
+
+    def fold_units(self, atoms: list[int]) -> list[list[int]]:
+        """Held-out units of a model (jackknife): rows carrying ``atoms``, grouped by power cycle when one of them
+        has block-D columns."""
+        carry = np.flatnonzero(self.carries[:, atoms].any(axis=1))
+        if self.fold is None or not any(_has_d(a) for a in atoms):
+            return [[int(k)] for k in carry]
+        out: dict = {}
+        for k in carry:
+            out.setdefault(int(self.fold[k]), []).append(int(k))
+        return list(out.values())
 
     def trained_cols(self, cols: list[int], k: int | None) -> list[int]:
         """``cols`` without those absent from the training runs of fold ``k`` (recorded in ``absent``): their
@@ -118,7 +143,10 @@ class Score:
     folds: list  # run indices
     shape: float | None
     atom: int
-    #: folds (run indices) whose training runs lack some of the chosen atom's columns (gain 0 there)
+    #: held-out gains per power cycle (fold ids of ``Totals.fold``), for comparing a candidate scored on run folds
+    #: with one scored on power-cycle folds (``_separable``)
+    cycle_gains: dict | None = None
+    #: held-out rows whose training rows lack some of the chosen atom's columns (gain 0 there)
     absent_folds: list = field(default_factory=list)
     #: the gate this score was tested against (None: not tested yet)
     gate: float | None = None
@@ -156,18 +184,33 @@ def score_group(t: Totals, gi: int, base_atoms: list[int]) -> Score | None:
             absent.append(int(k))
         gains.append(t.heldout_sse(base, k) - t.heldout_sse(base + list(ATOMS[a].cols), k))
     full = min(atoms, key=lambda a: t.train_sse(base + list(ATOMS[a].cols), None))
-    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], [int(k) for k in carry], ATOMS[full].shape, full,
-                 absent)
+    folds = [int(k) for k in carry]
+    agg: dict = {}  # a power cycle's held-out gains (its runs' blocks A-C, its run-level rows) summed
+    for k, g in zip(carry, gains):
+        f = int(t.fold[k]) if t.fold is not None else int(k)
+        agg[f] = agg.get(f, 0.0) + float(g)
+    if t.fold is not None and _has_d(atoms[0]):  # folds per power cycle
+        folds, gains = list(agg), list(agg.values())
+    return Score(gi, float(np.sum(gains)), [float(g) for g in gains], folds, ATOMS[full].shape, full, agg,
+                 absent_folds=absent)
+
+
+def _has_d(atom: int) -> bool:
+    from assets_lib.simreal import effects as fx
+
+    return fx.has_block(ATOMS[atom].family, "D")
 
 
 def _separable(best: Score, other: Score) -> bool:
     """simreal.md sec. 4.2 step 4: the best candidate is separable from another only if it is ahead in at least
     K - 1 of the K folds both are scored on (with fewer than two common folds: by the overall margin alone)."""
-    common = [k for k in best.folds if k in other.folds]
-    if len(common) < 2:
-        return True
     gb = dict(zip(best.folds, best.fold_gains))
     go = dict(zip(other.folds, other.fold_gains))
+    if (_has_d(best.atom) != _has_d(other.atom)) and best.cycle_gains and other.cycle_gains:
+        gb, go = best.cycle_gains, other.cycle_gains  # one on power-cycle folds: compare both per power cycle
+    common = [k for k in gb if k in go]
+    if len(common) < 2:
+        return True
     ahead = sum(gb[k] > go[k] for k in common)
     return ahead >= len(common) - 1
 
@@ -316,9 +359,9 @@ def select(d: Design, thresholds: dict | None = None, null_designs: list | None 
         # whitened GLS covariance (X' C^-1 X)^-1 of the final model (pseudo-inverse: g^2 columns are only
         # identified up to a common part that the bias absorbs; magnitudes are identifiable contrasts)
         V = np.linalg.pinv(t.G.sum(0)[np.ix_(cols, cols)], rcond=1e-12)
-        carry = np.flatnonzero(t.carries[:, base_atoms].any(axis=1))
-        gj = [_solve((t.G.sum(0) - t.G[k])[np.ix_(cols, cols)], (t.b.sum(0) - t.b[k])[cols]) for k in carry] \
-            if carry.size >= 3 else []
+        units = t.fold_units(base_atoms)  # runs, or power cycles for block-D families
+        gj = [_solve((t.G.sum(0) - t.G[u].sum(0))[np.ix_(cols, cols)], (t.b.sum(0) - t.b[u].sum(0))[cols])
+              for u in units] if len(units) >= 3 else []
         k = 0
         for a in base_atoms:
             n = len(ATOMS[a].cols)

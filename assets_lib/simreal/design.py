@@ -26,6 +26,7 @@ import pandas as pd
 from assets_lib.calibration.fit_core import log_kernel
 from assets_lib.calibration.segmentation import CHANNELS
 from assets_lib.simreal import effects as fx
+from assets_lib.simreal import run_level
 from assets_lib.simreal.experiment import DECIMATE, ProcessedRun, RunInputs
 
 AX = "xyz"
@@ -73,6 +74,14 @@ class Design:
     #: (any further signature on those rows enters as M @ x) and the plateaus' (plan, step) keys, for the
     #: lack-of-fit test of accepted effects (``attribution.lack_of_fit``)
     a_rows: dict = field(default_factory=dict)
+    #: block D (``run_level.py``): per power cycle (rows of ``d_cycles``) Gram sums of the whitened, cycle-bias-
+    #: projected run-level bias rows; ``run_cycle``: each run's row in ``d_cycles`` (-1: no block-D row)
+    gram_d: np.ndarray | None = None  # (n_cycles, P, P)
+    xty_d: np.ndarray | None = None  # (n_cycles, P)
+    yty_d: np.ndarray | None = None  # (n_cycles,)
+    carries_d: np.ndarray | None = None  # (n_cycles, n_atoms)
+    d_cycles: tuple = ()
+    run_cycle: tuple = ()
 
 
 def _orth(a: np.ndarray, tol: float = 1e-10) -> np.ndarray:
@@ -81,6 +90,15 @@ def _orth(a: np.ndarray, tol: float = 1e-10) -> np.ndarray:
     u, s, _ = np.linalg.svd(a, full_matrices=False)
     keep = s > tol * max(s[0], 1e-300)
     return u[:, keep]
+
+
+#: names of ``_nuisance``'s columns (block D shares them by name across the runs of a power cycle)
+def nuisance_names(kind: str, j: int) -> tuple:
+    if j < 3:
+        return ("1", "w_x", "w_y", "w_z", "f_x", "f_y", "f_z") if kind == "rate" else ("1", "f_x", "f_y", "f_z")
+    if kind == "rate":
+        return ("1", "f_x", "f_y", "f_z")
+    return ("1", "f_x", "f_y", "f_z", "k2", "c_1", "c_2")
 
 
 def _nuisance(kind: str, j: int, w: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -124,11 +142,21 @@ def _project(yw, Xw, Nw):
     return yw - Q @ (Q.T @ yw), Xw - Q @ (Q.T @ Xw)
 
 
+#: columns with block-D (run-level) signatures: every family with block-A columns (``run_level.py``)
+D_COLS = np.zeros(N_COLS)
+for _at in ATOMS:
+    if fx.has_block(_at.family, "A"):
+        D_COLS[list(_at.cols)] = 1.0
+
+
 def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict, real_windows: dict,
-                 rk_per_channel: np.ndarray) -> Design:
+                 rk_per_channel: np.ndarray, bias_offset: dict | None = None) -> Design:
+    """Blocks A, B, C, D of one realisation. ``real_windows``: run -> list of (step, sample index array) of the
+    real run's rate windows (block B rows are fixed by the recorded experiment). ``bias_offset``: run -> (6,) bias
+    the realisation was simulated with (replicates: the real run's fitted bias), subtracted from the run-level
+    observations of block D (``run_level.py``)."""
     flicker_b = np.array([p.b for p in twin.noise])
-    """Blocks A, B, C of one realisation. ``real_windows``: run -> list of (step, sample index array) of the
-    real run's rate windows (block B rows are fixed by the recorded experiment)."""
+    d_entries = []
     n_runs = len(runs)
     P = N_COLS
     gram = np.zeros((n_runs, 3, P, P))
@@ -188,6 +216,12 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
                 except np.linalg.LinAlgError:
                     L = np.diag(s[idx])
                 Li = np.linalg.inv(L)
+                if j in run_level.CHANNELS:
+                    off = float(bias_offset[inp.run_id][j]) if bias_offset and inp.run_id in bias_offset else 0.0
+                    e = run_level.entry(ri, j, inp.power_cycle, Li, N, nuisance_names(inp.kind, j), y[idx], X, D,
+                                        sub["t_on"], tlen, D_COLS, off)
+                    if e is not None:
+                        d_entries.append(e)
                 yr, Xr = _project(Li @ y[idx], Li @ X, Li @ N)
                 Q = _orth(Li @ N)
                 plan_key = (inp.kind, len(getattr(getattr(inp.manifest, "plan", None), "steps", ()) or ()))
@@ -251,8 +285,36 @@ def build_design(runs: tuple[RunInputs, ...], processed: dict, twin, imus: dict,
     share = np.where(tot > 0, dg / np.where(tot > 0, tot, 1.0), 0.0)
     for ai, at in enumerate(ATOMS):
         carries[:, ai] = np.any(share[:, list(at.cols)] >= 0.01, axis=1)
+    # ---------------- block D (run level): per power cycle and channel
+    cyc_ids = sorted({e.cycle for e in d_entries})
+    gd = np.zeros((len(cyc_ids), P, P))
+    xd = np.zeros((len(cyc_ids), P))
+    sd = np.zeros(len(cyc_ids))
+    run_cycle = np.full(n_runs, -1)
+    for ci, pc in enumerate(cyc_ids):
+        for j in range(6):
+            es = [e for e in d_entries if e.cycle == pc and e.channel == j]
+            out = run_level.cycle_rows(es, flicker_b[j] ** 2 / np.pi, rk_per_channel[j] ** 2)
+            if out is None:
+                continue
+            yd, Xd = out
+            ris = [e.run_index for e in es]
+            gd[ci] += Xd.T @ Xd
+            xd[ci] += Xd.T @ yd
+            sd[ci] += float(yd @ yd)
+            run_cycle[ris] = ci
+            for v in yd:
+                rows.append(("D", None, fx.CHANNEL_NAMES[j], None, float(v)))
+    carries_d = np.zeros((len(cyc_ids), len(ATOMS)), bool)
+    if len(cyc_ids):
+        ddg = np.diagonal(gd, axis1=1, axis2=2)
+        tot_d = tot + ddg.sum(axis=0)
+        share_d = np.where(tot_d > 0, ddg / np.where(tot_d > 0, tot_d, 1.0), 0.0)
+        for ai, at in enumerate(ATOMS):
+            carries_d[:, ai] = np.any(share_d[:, list(at.cols)] >= 0.01, axis=1)
     df = pd.DataFrame(rows, columns=["block", "run_id", "channel", "step_index", "y"])
-    return Design(tuple(r.run_id for r in runs), gram, xty, yty, carries, df, extra, a_rows)
+    return Design(tuple(r.run_id for r in runs), gram, xty, yty, carries, df, extra, a_rows, gd, xd, sd, carries_d,
+                  tuple(cyc_ids), tuple(int(c) for c in run_cycle))
 
 
 def real_rate_windows(runs, processed, imus: dict, rails=(None, None)) -> dict:

@@ -34,7 +34,7 @@ from assets_lib.simreal.views import ViewTable, calibrate, compute_views
 
 NULL_SD = 5.0
 SCHEMA_VERSION = "1.0"
-BLOCK_INDEX = {"A": 0, "B": 1, "C": 2}
+BLOCK_INDEX = {"A": 0, "B": 1, "C": 2, "D": 3}
 
 
 @dataclass
@@ -118,7 +118,8 @@ def diagnose_device(landing, device_id: str, replicates: int = 20, seed: int = 0
         tm["replicates_augmented"] = time.time() - t3
     # ---- shrink
     fams = {fx.FAMILIES[ATOMS[a].family].block for a in accepted_atoms}
-    blocks = tuple(sorted(BLOCK_INDEX[b] for b in fams)) if fams else (0, 1, 2)
+    fams |= {"D" for a in accepted_atoms if fx.has_block(ATOMS[a].family, "D")}  # run-level families (bias ramp, ...)
+    blocks = tuple(sorted(BLOCK_INDEX[b] for b in fams)) if fams else (0, 1, 2, 3)
     E_base = at.heldout_error(real, [], blocks)
     E_model = at.heldout_error(real, accepted_atoms, blocks)
     floor = np.array([at.heldout_error(r.design, [], blocks) for r in reps])

@@ -8,17 +8,20 @@ into the family's canonical SI magnitude.
 
 Blocks (``design.py``): ``A`` plateau means (one row per plateau and channel), ``B`` table-angle-resolved
 residuals inside rate windows (10 Hz block means, window mean removed), ``C`` one row per run: the clock drift
-measured by segmentation's table/IMU alignment.
+measured by segmentation's table/IMU alignment, ``D`` run level (``run_level.py``): each run's fitted bias with
+the power cycle's bias as nuisance; a family's block-D signature is its block-A signature through the same
+bias estimator, so only ``extra_blocks=("D",)`` marks it (bias ramp, warm-up, temperature bias: the families
+that move the bias between the runs of a power cycle; their folds are power cycles).
 
 Families and their folds (issue 12: folds are the runs that carry the signature):
 
 =========================== ====== ==================================================== =========================
 family                      block  signature (channel j)                                folds
 =========================== ====== ==================================================== =========================
-temperature_bias            A      T_lag - T0 (T lagged by 0..400 s, profiled)          runs
+temperature_bias            A, D   T_lag - T0 (T lagged by 0..400 s, profiled)          power cycles
 temperature_scale_factor    A      x_j (T_lag - T0), x = omega (gyro) or f (accel)      runs
-warmup_bias                 A      exp(-t_on / tau), tau profiled in 120..2400 s        runs
-bias_ramp                   A      t_on (time since power-on)                           runs
+warmup_bias                 A, D   exp(-t_on / tau), tau profiled in 120..2400 s        power cycles
+bias_ramp                   A, D   t_on (time since power-on)                           power cycles
 g_sensitivity               A      f_x^2, f_y^2, f_z^2 (g-squared part; linear G is     runs
                                    in the base model)
 scale_factor_nonlinearity   A      omega_j^2, omega_j^3                                 rate runs
@@ -71,15 +74,16 @@ class Family:
     n_coef: int
     shapes: tuple = (None,)
     rate_runs_only: bool = False
-    #: further blocks with signature columns (the wobble: its plateau means on block A as well as block B)
+    #: further blocks with signature columns (the wobble: its plateau means on block A as well as block B; "D":
+    #: the run-level bias block, whose columns come from the block-A ones, ``run_level.py``)
     extra_blocks: tuple = ()
 
 
 FAMILIES: dict[str, Family] = {f.name: f for f in (
-    Family("temperature_bias", "rad/s/K | m/s^2/K", GYRO + ACCEL, "A", 1, THERMAL_LAGS_S),
+    Family("temperature_bias", "rad/s/K | m/s^2/K", GYRO + ACCEL, "A", 1, THERMAL_LAGS_S, extra_blocks=("D",)),
     Family("temperature_scale_factor", "1/K", GYRO + ACCEL, "A", 1, THERMAL_LAGS_S),
-    Family("warmup_bias", "rad/s | m/s^2", GYRO + ACCEL, "A", 1, WARMUP_TAUS_S),
-    Family("bias_ramp", "rad/s^2 | m/s^3", GYRO + ACCEL, "A", 1),
+    Family("warmup_bias", "rad/s | m/s^2", GYRO + ACCEL, "A", 1, WARMUP_TAUS_S, extra_blocks=("D",)),
+    Family("bias_ramp", "rad/s^2 | m/s^3", GYRO + ACCEL, "A", 1, extra_blocks=("D",)),
     Family("g_sensitivity", "rad/s per (m/s^2)^2", GYRO, "A", 3),
     Family("scale_factor_nonlinearity", "1", GYRO, "A", 2, rate_runs_only=True),
     Family("scale_factor_asymmetry", "1", GYRO, "A", 1, rate_runs_only=True),

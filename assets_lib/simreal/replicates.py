@@ -52,7 +52,8 @@ def one_replicate(r: int, seed: int, twin: TwinModel, runs, windows, rk) -> Repl
         imus[inp.run_id] = imu
         proc[inp.run_id] = process_run(inp, imu)
     own = refit_like_real(twin, runs, imus, proc)
-    d = build_design(runs, proc, own, imus, windows, np.array([p.k for p in own.noise]))
+    # run-level block D under the null of one bias per power cycle: relative to the bias each run was simulated with
+    d = build_design(runs, proc, own, imus, windows, np.array([p.k for p in own.noise]), bias_offset=twin.bias)
     return Replicate(r, d, compute_views(d, proc, own.noise))
 
 
