@@ -701,14 +701,14 @@ def _markov_joint_profile(fine, design, f0, a, V, crit, k, sensor, ci_level, th,
         xk = Xw[:, k]
         lo = 0.0
         if thk > 0 and chi(0.0, xk) > cut:
-            lo = optimize.brentq(lambda v: chi(v, xk) - cut, 0.0, thk, xtol=1e-12 * max(thk, step), rtol=1e-6)
+            lo = optimize.brentq(lambda v, xk=xk: chi(v, xk) - cut, 0.0, thk, xtol=1e-12 * max(thk, step), rtol=1e-6)
         up = thk + step
         for _ in range(80):
             if chi(up, xk) > cut:
                 break
             step *= 2.0
             up = thk + step
-        hi = optimize.brentq(lambda v: chi(v, xk) - cut, thk, up, xtol=1e-12 * up, rtol=1e-6)
+        hi = optimize.brentq(lambda v, xk=xk: chi(v, xk) - cut, thk, up, xtol=1e-12 * up, rtol=1e-6)
         los.append(_theta_to_param("M", lo, t_))
         his.append(_theta_to_param("M", hi, t_))
     if chi0 <= cut or not his:
