@@ -54,6 +54,26 @@ def test_noise_corrected_repeatability_interval_covers_the_turn_on_spread(sigma_
     assert plain / n < cov  # the uncorrected interval is centred on sqrt(sigma^2 + se^2)
 
 
+def test_interval_z_is_the_interval_pivot_on_its_construction_scale():
+    """z of a profile-likelihood interval: |z| < 1.96 exactly when the interval covers, each side scaled by its
+    own half-width on the variance (or ln) scale; a symmetric interval in theta gives the plain Wald z."""
+    bench = _bench()
+    z95 = bench.Z95
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        est = rng.uniform(1.0, 2.0)
+        lo, hi = est * rng.uniform(0.2, 0.95), est * rng.uniform(1.05, 3.0)
+        t = rng.uniform(0.1, 4.0)
+        for scale in ("variance", "log"):
+            z = bench.interval_z(est, t, lo, hi, scale)
+            assert (abs(z) < z95) == (lo < t < hi)
+            assert np.sign(z) == np.sign(est - t)
+    # theta = 4 +- 1.96 (sd 1): a truth at theta = 3 is one sd low
+    lo, hi = math.sqrt(4 - z95), math.sqrt(4 + z95)
+    assert bench.interval_z(2.0, math.sqrt(3.0), lo, hi, "variance") == pytest.approx(1.0)
+    assert bench.interval_z(2.0, math.sqrt(5.0), lo, hi, "variance") == pytest.approx(-1.0)
+
+
 @pytest.mark.slow
 def test_small_noise_coverage_run_scores_every_printed_interval(tmp_path):
     """Nine trials (every grade x noise plan) through the stage's computation: every scored row is well formed,

@@ -25,11 +25,12 @@ on the same likelihood ([FELDMAN1998]). A term the record identifies gets a Satt
 constraints; lowering its lower end to the profile's, which extends toward the neighbours put at zero, over-covered
 N and B, z sd 0.7-0.8 in benchmarks/coverage_noise.py), except the long-tau terms B, K and R: they trade places
 with each other, so the active set (a dropped K or R held at zero) charges their share of the long-tau AVAR to the
-kept term with no uncertainty (B two-sided coverage 0.89-0.91); their two-sided interval is the profile set itself.
+kept term with no uncertainty (B two-sided coverage 0.89-0.91); their two-sided interval is the profile set itself,
+and their printed value its centre (the fit with every term free), not the eliminated fit's.
 The quantization term's PSD in V is the sampled one, (4 Q^2 / tau0) sin^2(pi f tau0) ([IEEE952] C.2), not its
 small-f form, which overstated the variance of Q-dominated short-tau points 1.3-1.9x. The Markov correlation time
 comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
-interval is the union of its intervals over that set. benchmarks/coverage_noise.py measures the coverage of
+interval is the joint profile-likelihood set of (q_c, T_c) projected on q_c (every other term and T_c free). benchmarks/coverage_noise.py measures the coverage of
 every printed interval.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
@@ -582,14 +583,14 @@ def fit_noise(
         def cov_at(th_vec):
             Vn = covariance(np.maximum(th_vec, 0.0), Xd)
             return Vn + delta * delta * np.diag(np.maximum(Xd @ th_vec, 1e-300) ** 2) if delta > 0 else Vn
-    theta, rss, cov, sd_all, bound_theta, (lo_prof, hi_prof) = _significant_terms(Xd, a, V, z2, cov_at)
+    theta, rss, cov, sd_all, bound_theta, (lo_prof, hi_prof, centre) = _significant_terms(Xd, a, V, z2, cov_at)
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
         name = {"M": "markov_q", "S": "sin_amplitude"}.get(t, t)
         if t == "M" and profile is not None:
-            params.append(_markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level,
-                                          k not in bound_theta, th, sd, tc, bound_theta.get(k)))
+            params.append(_markov_joint_profile(fine, design, f0, a, V, disp * stats.chi2.ppf(ci_level, 1), k,
+                                                sensor, ci_level, th, sd, tc, bound_theta.get(k)))
             continue
         if k in bound_theta:
             ub_val = _theta_to_param(t, bound_theta[k], tc)
@@ -599,7 +600,12 @@ def fit_noise(
             # dropped at zero, so their share of the long-tau AVAR is charged to the kept term with no uncertainty
             # (B two-sided coverage 0.89-0.91 where K or R was dropped, benchmarks/coverage_noise.py). The interval
             # is the profile-likelihood set with every other term free and non-negative ([VENZON1988]), the same
-            # set that decided the term is identified; the estimate stays the fit's
+            # set that decided the term is identified. The printed estimate is that set's centre, the fit with every
+            # term free (the eliminated fit's value charged the dropped neighbours' share to the kept term: accel
+            # B z mean +0.41 where K and R were injected, benchmarks/coverage_noise.py); theta (the model curve)
+            # stays the eliminated fit's
+            if centre[k] > 0:
+                th = float(centre[k])
             lo, hi = min(float(lo_prof[k]), th), max(float(hi_prof[k]), th)
             se = _theta_to_param(t, th, tc) * ((hi - lo) / (2.0 * z2)) / (2.0 * th)
         else:
@@ -656,32 +662,64 @@ def fit_noise(
     )
 
 
-def _satterthwaite(th: float, sd: float, ci_level: float) -> tuple[float, float]:
-    """theta_hat ~ theta chi2_nu / nu with nu = 2 theta^2 / sd^2 ([SATTERTHWAITE1946]): interval on theta."""
-    nu = 2.0 * th**2 / sd**2
-    return (nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu), nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu))
+def _markov_joint_profile(fine, design, f0, a, V, crit, k, sensor, ci_level, th, sd, tc, bound):
+    """markov_q = q_c = sqrt(theta_M) / T_c by the joint profile likelihood of (q_c, T_c) ([VENZON1988]): the set
+    {q : min over T_c (the fine grid) and every other term >= 0 of the GLS chi2 with theta_M = (q T_c)^2
+    <= chi2_min + crit}. At fixed T_c the GLS chi2 is convex in theta_M, so its set there is an interval; the
+    q set is the union of those intervals over T_c, each cut at the global minimum + crit (not at its own:
+    the union of per-T_c 95 % intervals over T_c's 95 % set, a projection, over-covered, gyro markov_q 0.98 with
+    z sd 0.74 in benchmarks/coverage_noise.py). When theta_M = 0 lies in the set (the fit without the Markov term
+    is within crit of the minimum; it does not depend on T_c) the record does not identify the term: an upper
+    bound, at least the significance test's ``bound``."""
+    L = np.linalg.cholesky(V)
+    aw = np.linalg.solve(L, a)
+    Xws = [np.linalg.solve(L, design(t_, f0)) for t_ in fine]
+    p = Xws[0].shape[1]
+    others = [j for j in range(p) if j != k]
+    Xo = Xws[0][:, others]  # the other columns do not depend on T_c
+    so = np.linalg.norm(Xo, axis=0)
+    so[so == 0] = 1.0
+    Xo = Xo / so
 
+    def chi(th_m, xk):
+        r = aw - xk * th_m
+        return float(optimize.nnls(Xo, r, maxiter=50 * p)[1] ** 2) if Xo.shape[1] else float(r @ r)
 
-def _markov_profile(profile, design, f0, a, V, z2, k, sensor, ci_level, supported, th, sd, tc, bound):
-    """markov_q = sqrt(theta_M) / T_c with T_c's uncertainty: the union over the profile set of T_c of the
-    Satterthwaite intervals at each T_c (a profile / projection interval); an upper bound (the largest over the
-    set) when the term is not supported."""
-    los, his, ubs = [], [], []
-    for t_ in profile:
-        th_t, rss_t, cov_t, sd_t, b_t, lp_t = _significant_terms(design(t_, f0), a, V, z2)
-        if k in b_t:
-            ubs.append(_theta_to_param("M", b_t[k], t_))
-        else:
-            lo, hi = _satterthwaite(float(th_t[k]), float(sd_t[k]), ci_level)
-            los.append(_theta_to_param("M", lo, t_))
-            his.append(_theta_to_param("M", hi, t_))
-            ubs.append(his[-1])
-    if not supported or len(los) < len(profile):  # unsupported somewhere in the T_c set: lower limit 0
-        ub = max(ubs + ([_theta_to_param("M", bound, tc)] if bound is not None else []))
+    fits = []
+    for Xw in Xws:
+        sc = np.linalg.norm(Xw, axis=0)
+        sc[sc == 0] = 1.0
+        t_all, rn = optimize.nnls(Xw / sc, aw, maxiter=50 * p)
+        fits.append((float(t_all[k] / sc[k]), float(rn**2), 1.0 / sc[k]))
+    chi_min = min(f_[1] for f_ in fits)
+    chi0 = chi(0.0, Xws[0][:, k])
+    cut = chi_min + crit
+    los, his = [], []
+    for t_, Xw, (thk, c_k, step) in zip(fine, Xws, fits):
+        if c_k > cut:
+            continue
+        xk = Xw[:, k]
+        lo = 0.0
+        if thk > 0 and chi(0.0, xk) > cut:
+            lo = optimize.brentq(lambda v, xk=xk: chi(v, xk) - cut, 0.0, thk, xtol=1e-12 * max(thk, step), rtol=1e-6)
+        up = thk + step
+        for _ in range(80):
+            if chi(up, xk) > cut:
+                break
+            step *= 2.0
+            up = thk + step
+        hi = optimize.brentq(lambda v, xk=xk: chi(v, xk) - cut, thk, up, xtol=1e-12 * up, rtol=1e-6)
+        los.append(_theta_to_param("M", lo, t_))
+        his.append(_theta_to_param("M", hi, t_))
+    if chi0 <= cut or not his:
+        ub = max(his + ([_theta_to_param("M", bound, tc)] if bound is not None else []) or [0.0])
         return _param("markov_q", math.nan, 0.0, ub, sensor, "fit", True, ci_level)
+    if th <= 0:  # the elimination at the interpolated T_c dropped the term the joint profile identifies
+        j = int(np.argmin([f_[1] for f_ in fits]))
+        th, tc = fits[j][0], float(fine[j])
     val = _theta_to_param("M", th, tc)
-    lo, hi = min(los), max(his)
-    return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th))
+    lo, hi = min(min(los), val), max(max(his), val)
+    return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th) if th > 0 else math.nan)
 
 
 def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float, cov_at=None):
@@ -713,13 +751,14 @@ def _significant_terms(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, z2: float, 
             break
         keep.remove(min(weak, key=lambda k: theta[k] / sd[k] if sd[k] > 0 else 0.0))
     lo_p, hi_p, _ = _profile_limits(Xd, a, V, z2 * z2)
+    centre, _ = _nn_gls(Xd, a, V)  # the profile sets' common minimum: every term free and non-negative
     bounds = {}
     for k in range(p):
         if k in keep and theta[k] > 0 and lo_p[k] > 0:
             continue
         bounds[k] = float(hi_p[k]) if cov_at is None else max(float(hi_p[k]),
                                                               _bound_at_null(Xd, a, V, k, z2 * z2, cov_at))
-    return theta, rss, cov, sd, bounds, (lo_p, hi_p)
+    return theta, rss, cov, sd, bounds, (lo_p, hi_p, centre)
 
 
 def _profile_limits(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, crit: float, only=None):
