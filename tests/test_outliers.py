@@ -104,6 +104,32 @@ def test_estimate_resolution_on_continuous_and_scaled_counts():
     assert estimate_resolution(counts * lsb) == pytest.approx(lsb, rel=1e-9)
 
 
+def test_hashed_levels_are_numpys_sorted_unique_values():
+    from assets_lib.calibration.outliers import _sorted_unique
+
+    rng = np.random.default_rng(6)
+    for v in (np.rint(3 * rng.standard_normal(4000)) * 0.01, rng.standard_normal(300),
+              np.where(rng.random(500) < 0.5, 0.0, -0.0) + np.rint(rng.standard_normal(500)) * 2e-3):
+        u = _sorted_unique(v)
+        assert np.array_equal(u, np.unique(v)) and np.all(np.diff(u) > 0)
+
+
+def test_channels_judged_together_as_one_at_a_time():
+    """The first pass is shared by the channels (one design, medians along an axis): each channel's mask and
+    robust sigma are those of the channel alone, bit for bit, and a sample is kept when every channel keeps it."""
+    rng = np.random.default_rng(7)
+    n = 3000
+    y = rng.standard_normal((n, 4)) * [1.0, 2e-3, 5.0, 1.0] + np.linspace(0, 1, n)[:, None]
+    y[rng.choice(n, 40, replace=False), 0] += 30.0
+    y[:, 3] = np.rint(y[:, 3])
+    res = [None, None, None, 1.0]
+    w = reject_outliers_window(_t(n), y, resolution=res)
+    alone = [reject_outliers_window(_t(n), y[:, j], resolution=res[j]) for j in range(4)]
+    assert w.sigma_per_channel.tobytes() == np.concatenate([a.sigma_per_channel for a in alone]).tobytes()
+    assert np.array_equal(w.keep, np.logical_and.reduce([a.keep for a in alone]))
+    assert w.rejected_per_channel.tolist() == [a.n_rejected for a in alone] and w.rejected_per_channel[0] >= 40
+
+
 def test_reject_outliers_over_plateaus_summary_and_mask():
     rng = np.random.default_rng(6)
     n = 6000

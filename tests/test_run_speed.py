@@ -122,6 +122,30 @@ def test_planning_graph_round_trips_and_any_source_change_invalidates_it(tmp_pat
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# the per-process read cache of small tables
+# ---------------------------------------------------------------------------------------------------------------
+def test_small_tables_are_read_once_and_served_as_independent_copies(tmp_path, monkeypatch):
+    from assets_lib.store import versioned
+    from assets_lib.store.versioned import write_parquet_deterministic
+
+    path = tmp_path / "coefficients.parquet"
+    write_parquet_deterministic(pd.DataFrame({"coefficient": ["a", "b"], "value": [1.0, 2.0]}), path)
+    reads = []
+    real = pd.read_parquet
+    monkeypatch.setattr(versioned.pd, "read_parquet", lambda *a, **k: reads.append(a) or real(*a, **k))
+    first = versioned.read_table(path)
+    first.loc[0, "value"] = -1.0  # a caller's change never reaches the cache
+    first["extra"] = 0
+    again = versioned.read_table(path)
+    pd.testing.assert_frame_equal(again, real(path), check_exact=True)
+    assert len(reads) == 1
+    assert list(versioned.read_table(path, columns=["value"]).columns) == ["value"] and len(reads) == 2
+    # a file rewritten in place, even at once and to the same size, is read anew
+    write_parquet_deterministic(pd.DataFrame({"coefficient": ["a", "b"], "value": [1.0, 3.0]}), path)
+    assert versioned.read_table(path)["value"].tolist() == [1.0, 3.0] and len(reads) == 3
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # the headline table
 # ---------------------------------------------------------------------------------------------------------------
 def _coef(value: float) -> pd.DataFrame:

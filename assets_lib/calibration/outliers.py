@@ -92,7 +92,10 @@ def estimate_resolution(values: np.ndarray, rel_tol: float = 1e-3) -> float | No
     q_all = _level_step(v, rel_tol, require_repeats=True)
     rep = v[:-1][v[1:] == v[:-1]]
     if rep.size:
-        lev, cnt = np.unique(rep, return_counts=True)
+        counts = pd.Series(rep).value_counts(sort=False)  # hashed: the distinct values only are sorted below
+        lev, cnt = counts.index.to_numpy(dtype=float), counts.to_numpy()
+        order = np.argsort(lev)
+        lev, cnt = lev[order], cnt[order]
         rep = lev[cnt >= max(3, 0.005 * rep.size)]  # levels, not the odd coincidence of two interpolated values
     q_rep = _level_step(rep, rel_tol, require_repeats=False) if rep.size >= 2 else None
     if q_rep is not None and (q_all is None or q_rep > q_all):
@@ -104,8 +107,14 @@ def estimate_resolution(values: np.ndarray, rel_tol: float = 1e-3) -> float | No
     return q_all
 
 
+def _sorted_unique(v: np.ndarray) -> np.ndarray:
+    """``np.unique(v)`` of finite values, found by hashing (pandas) so that only the distinct values are sorted:
+    a quantized stream has far fewer levels than samples."""
+    return np.sort(pd.unique(v))
+
+
 def _level_step(v: np.ndarray, rel_tol: float, require_repeats: bool) -> float | None:
-    u = np.unique(v)
+    u = _sorted_unique(v)
     if u.size < 2 or (require_repeats and u.size > v.size // 2):
         return None  # (nearly) every value distinct: not a quantized stream
     d = np.diff(u)
@@ -121,9 +130,10 @@ def _level_step(v: np.ndarray, rel_tol: float, require_repeats: bool) -> float |
     return None
 
 
-def _robust_sigma(r: np.ndarray) -> float:
-    med = np.median(r)
-    return MAD_TO_SIGMA * float(np.median(np.abs(r - med)))
+def _robust_sigma(r: np.ndarray) -> np.ndarray:
+    """1.4826 MAD along the last axis (one value per row of a 2-d array)."""
+    med = np.median(r, axis=-1, keepdims=True)
+    return MAD_TO_SIGMA * np.median(np.abs(r - med), axis=-1)
 
 
 def reject_outliers_window(
@@ -156,6 +166,13 @@ def reject_outliers_window(
     x = (t - 0.5 * (t[-1] + t[0])) / half if half > 0 else np.zeros(n)
     degree = int(max(0, min(config.degree, n // config.min_samples_per_coefficient - 1)))
     vander = legendre.legvander(x, degree)
+    # first pass, every sample kept: one design (and normal matrix) for all channels, their medians in one call
+    full = np.ascontiguousarray(vander)
+    gram = full.T @ full
+    r_all = np.empty((nc, n))
+    for j in range(nc):
+        r_all[j] = y[:, j] - vander @ np.linalg.solve(gram, full.T @ y[:, j].copy())
+    s_all = np.maximum(np.maximum(_robust_sigma(r_all), res), np.finfo(float).tiny)
     keep_c = np.ones((n, nc), bool)
     sigma = np.zeros(nc)
     iterations = 0
@@ -163,11 +180,13 @@ def reject_outliers_window(
     for j in range(nc):
         kj = np.ones(n, bool)
         prev = None
+        r, s = r_all[j], s_all[j]
         for it in range(1, config.max_iter + 1):
-            vk = vander[kj]
-            coef = np.linalg.solve(vk.T @ vk, vk.T @ y[kj, j])  # Legendre basis on [-1, 1]: well conditioned
-            r = y[:, j] - vander @ coef
-            s = max(_robust_sigma(r), res[j], np.finfo(float).tiny)
+            if it > 1:
+                vk = vander[kj]
+                coef = np.linalg.solve(vk.T @ vk, vk.T @ y[kj, j])  # Legendre basis on [-1, 1]: well conditioned
+                r = y[:, j] - vander @ coef
+                s = max(float(_robust_sigma(r)), res[j], np.finfo(float).tiny)
             new = np.abs(r) < config.k_sigma * s
             iterations = max(iterations, it)
             if np.array_equal(new, kj):

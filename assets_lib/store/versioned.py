@@ -11,10 +11,12 @@ never leaves a half-written file where a reader looks. Earlier versions stay on 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import shutil
 import tempfile
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +55,31 @@ def write_parquet_deterministic(df: pd.DataFrame, path: Path) -> None:
     """Parquet without pandas index or time-dependent metadata, so equal frames give equal bytes."""
     table = pa.Table.from_pandas(df, preserve_index=False)
     pq.write_table(table, path, compression="zstd", write_statistics=True)
+
+
+#: small tables are read many times in one process (a run's coefficients by its asset checks, the device's
+#: repeatability and record, the fleet drift): each is parsed once per process and served as a copy
+READ_CACHE_MAX_FILE_BYTES = 256 * 1024
+READ_CACHE_MAX_ENTRIES = 512
+_read_cache: OrderedDict[tuple, pd.DataFrame] = OrderedDict()
+
+
+def read_table(path: Path, columns=None) -> pd.DataFrame:
+    """``pd.read_parquet(path, columns=columns)``; files up to ``READ_CACHE_MAX_FILE_BYTES`` are parsed once per
+    process: cached by their bytes' digest (and the columns), so a file rewritten in place is never served stale.
+    Each call returns its own copy, so callers may modify it."""
+    if os.stat(path).st_size > READ_CACHE_MAX_FILE_BYTES:
+        return pd.read_parquet(path, columns=columns)
+    data = Path(path).read_bytes()
+    key = (hashlib.blake2b(data, digest_size=20).digest(), None if columns is None else tuple(columns))
+    df = _read_cache.get(key)
+    if df is None:
+        df = _read_cache[key] = pd.read_parquet(io.BytesIO(data), columns=columns)
+        while len(_read_cache) > READ_CACHE_MAX_ENTRIES:
+            _read_cache.popitem(last=False)
+    else:
+        _read_cache.move_to_end(key)
+    return df.copy()
 
 
 @dataclass(frozen=True)
@@ -154,7 +181,7 @@ class VersionedStore:
         return p.read_text().strip() if p.is_file() else None
 
     def read(self, asset: str, partition: str, table: str, version: str | None = None) -> pd.DataFrame:
-        return pd.read_parquet(self.version_dir(asset, partition, version) / f"{table}.parquet")
+        return read_table(self.version_dir(asset, partition, version) / f"{table}.parquet")
 
     def read_meta(self, asset: str, partition: str, version: str | None = None) -> dict:
         return json.loads((self.version_dir(asset, partition, version) / META).read_text())

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from assets_lib.store.versioned import META, VersionedStore
+from assets_lib.store.versioned import META, VersionedStore, read_table
 
 
 class StoreView:
@@ -40,7 +40,7 @@ class StoreView:
         return self.store.version_dir(asset, k, self.versions.get(f"{asset}/{k}"))
 
     def table(self, asset: str, name: str, key: str | None = None, columns=None) -> pd.DataFrame:
-        return pd.read_parquet(self.version_dir(asset, key) / f"{name}.parquet", columns=columns)
+        return read_table(self.version_dir(asset, key) / f"{name}.parquet", columns=columns)
 
     def has_table(self, asset: str, name: str, key: str | None = None) -> bool:
         return self.has(asset, key) and (self.version_dir(asset, key) / f"{name}.parquet").is_file()

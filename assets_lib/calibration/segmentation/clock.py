@@ -184,9 +184,10 @@ def _delay_inliers(t_imu, g_proj, rr) -> np.ndarray:
     a_mat = np.column_stack([rr[m], np.ones(m.sum())])
     coef, *_ = np.linalg.lstsq(a_mat, g_proj[m], rcond=None)
     e = g_proj[m] - a_mat @ coef
-    sig = MAD_TO_SIGMA * np.median(np.abs(e - np.median(e)))
+    med = np.median(e)
+    sig = MAD_TO_SIGMA * np.median(np.abs(e - med))
     out = m.copy()
-    out[m] = np.abs(e - np.median(e)) <= 5 * sig if sig > 0 else True
+    out[m] = np.abs(e - med) <= 5 * sig if sig > 0 else True
     return out
 
 
@@ -311,11 +312,14 @@ def align_clocks(plan, imu: pd.DataFrame, table: pd.DataFrame, config: Segmentat
     cands = (tc[:, None] - qc[None, :]).ravel()
     if halfwidth is not None:
         cands = cands[np.abs(cands - cfg.clock_offset_prior_s) <= halfwidth]
+    cands = np.unique(np.round(cands, 3))
+    # score of a candidate offset: the longest overlap of each table step with a quiet interval, summed in step order
+    scores = np.zeros(cands.size)
+    for a, b in steps.values():
+        overlap = np.minimum(qe, b - cands[:, None]) - np.maximum(qs, a - cands[:, None])
+        scores += np.clip(overlap, 0, None).max(axis=1)
     best, best_score = 0.0, -1.0
-    for c in np.unique(np.round(cands, 3)):
-        score = 0.0
-        for a, b in steps.values():
-            score += np.clip(np.minimum(qe, b - c) - np.maximum(qs, a - c), 0, None).max()
+    for c, score in zip(cands, scores):
         if score > best_score + 1e-9 or (abs(score - best_score) <= 1e-9 and abs(c) < abs(best)):
             best, best_score = float(c), score
     diffs = []

@@ -29,7 +29,7 @@ from assets_lib.calibration.segmentation.detection import (
 from assets_lib.calibration.segmentation.window_stats import plateau_sem
 from assets_lib.noise.pooled import TWO_PI
 from assets_lib.sim.earth import site_gravity_mps2
-from assets_lib.sim.kinematics import body_inputs
+from assets_lib.sim.kinematics import body_inputs, kinematics_cache
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
 
 CHANNELS = GYRO_COLUMNS + ACCEL_COLUMNS
@@ -101,7 +101,16 @@ def segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None = None,
     table log, so the offset is the recording's; with it the plateau windows, and every input that depends only on
     them, are the same in every replicate. The replicate's clock drift is then the recorded one (not re-estimated
     from its noise). Ignored without a table log.
+
+    The plan's kinematics are memoised for the call (``kinematics_cache``, bit-identical): the clock alignment's
+    trajectory over the IMU time grid then serves the windows' reference inputs by indexing.
     """
+    with kinematics_cache():
+        return _segment_run(manifest, imu, table, config, clock_alignment)
+
+
+def _segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None, config: SegmentationConfig,
+                 clock_alignment: ClockAlignment | None) -> SegmentationResult:
     cfg = config
     plan = manifest.plan
     lat = manifest.site.latitude_deg
