@@ -30,7 +30,8 @@ stderr. Also scored, from the same result objects:
   scored: they absorb the injected curve, so their truth is not the device's coefficient;
 - ``imulab fit tumble --misalignment-term`` (``fit_tumble_means``, seed 001's K0-K3 model) on the accelerometer
   axes a position plan tumbles through a full turn (the seed 001 12-position plan): K0-K3, delta_o and the
-  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth);
+  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth), with the run's 1/f level B and
+  its degrees of freedom (``flicker_b_dof``) as a lab with the run's Allan analysis would give them;
 - the table-free fits (``fit 'tablefree'``; benchmarks/mc_tablefree_coverage.py's trial on a trial-specific seed:
   a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
   accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
