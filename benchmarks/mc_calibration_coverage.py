@@ -30,7 +30,8 @@ stderr. Also scored, from the same result objects:
   scored: they absorb the injected curve, so their truth is not the device's coefficient;
 - ``imulab fit tumble --misalignment-term`` (``fit_tumble_means``, seed 001's K0-K3 model) on the accelerometer
   axes a position plan tumbles through a full turn (the seed 001 12-position plan): K0-K3, delta_o and the
-  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth);
+  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth), with the run's 1/f level B and
+  its degrees of freedom (``flicker_b_dof``) as a lab with the run's Allan analysis would give them;
 - the table-free fits (``fit 'tablefree'``; benchmarks/mc_tablefree_coverage.py's trial on a trial-specific seed:
   a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
   accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
@@ -358,7 +359,7 @@ def tumble_rows(base: dict, p: pd.DataFrame, dev) -> list[dict]:
     theta with f_i = g sin theta, plateau mean, sem, times and the run's 1/f level. Truth: the same model fitted to
     the noise-free error model (docs/design.md: M f + b + K2 f^2 + f_i Kc_i.f) at the plateaus' reference forces;
     exact, because on one plane every quadratic in (sin, cos) lies in the span of 1, sin, cos, sin^2, sin cos."""
-    from assets_lib.calibration.fit_core import flicker_b
+    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof
     from assets_lib.calibration.means_fit import fit_tumble_means
 
     ok = ~p["flagged"].astype(bool).to_numpy() & (p["kind"].to_numpy() == "static")
@@ -383,7 +384,7 @@ def tumble_rows(base: dict, p: pd.DataFrame, dev) -> list[dict]:
             times = (q["t_start_s"].to_numpy(float), q["t_end_s"].to_numpy(float))
             fit = fit_tumble_means(th, q[f"accel_{a}_mps2_mean"].to_numpy(float), q[f"accel_{a}_mps2_sem"].to_numpy(float),
                                    output_unit="m/s^2", misalignment_term=True, times=times,
-                                   flicker_b=flicker_b(p, f"accel_{a}_mps2"))
+                                   flicker_b=flicker_b(p, f"accel_{a}_mps2"), flicker_b_dof=flicker_b_dof(p, f"accel_{a}_mps2"))
             tru = fit_tumble_means(th, det[:, ax], None, output_unit="m/s^2", misalignment_term=True, exclusion="none")
             for c in TUMBLE_COEFFICIENTS:
                 co, ct = fit.coefficient(c), tru.coefficient(c)

@@ -269,3 +269,41 @@ def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
                      flicker_tau2=flicker_prior_tau2(0.0))
     assert fit.dof == 2 and fit.flicker_tau2 == pytest.approx(np.median(sem**2) / FLICKER_WHITE)
     assert fit.cov[0, 0] >= FLICKER_WHITE * fit.flicker_tau2
+
+
+def test_uncertain_flicker_level_is_integrated_out():
+    """A 1/f level read by an Allan fit is an estimate, tau2_hat ~ tau2 chi^2_nu / nu. Taken as exact (nu = 4) the
+    bias z-scores are too wide (an underestimated tau^2 gives large z); given its degrees of freedom the fit
+    integrates tau^2 out and the z-scores are standard normal again. :func:`flicker_b_dof` grows with the number
+    and the length of the plateaus."""
+    import pandas as pd
+
+    from assets_lib.calibration.fit_core import FLICKER_WHITE, fit_linear, flicker_b_dof, flicker_covariance
+
+    X, t_mid, t_len, _ = _flicker_design()
+    tau2, nu = (2e-4) ** 2 / np.pi, 4.0
+    sem = np.full(8, np.sqrt(1.2 * FLICKER_WHITE * tau2))  # 1/f-dominated plateaus
+    L = np.linalg.cholesky(flicker_covariance(sem, t_mid, t_len, tau2))
+    beta = np.array([0.05, 1.001, 1e-4])
+    rng = np.random.default_rng(11)
+    z_exact, z_marg = [], []
+    for _ in range(400):
+        y = X @ beta + L @ rng.standard_normal(8)
+        t_hat = tau2 * rng.chisquare(nu) / nu
+        for dof, z in ((None, z_exact), (nu, z_marg)):
+            fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                             flicker_tau2=t_hat, flicker_tau2_dof=dof)
+            z.append((fit.value[0] - beta[0]) / np.sqrt(fit.cov[0, 0]))
+    assert np.std(z_exact) > 1.08 and np.mean(np.abs(z_exact) < 1.96) < np.mean(np.abs(z_marg) < 1.96)
+    assert 0.92 < np.std(z_marg) < 1.08 and 0.91 < np.mean(np.abs(z_marg) < 1.96) < 0.98
+
+    b = 2e-4
+    def table(n_plateaus, n_samples):
+        T = n_samples / 100.0
+        sem_ = np.sqrt((150e-6 * 9.8) ** 2 / T + FLICKER_WHITE / np.pi * b**2)
+        return pd.DataFrame({"accel_x_mps2_sem": np.full(n_plateaus, sem_), "accel_x_mps2_flicker_b": b,
+                             "n_samples": n_samples, "t_start_s": 100.0 * np.arange(n_plateaus),
+                             "t_end_s": 100.0 * np.arange(n_plateaus) + (n_samples - 1) / 100.0})
+    nu6, nu24, nu24_long = (flicker_b_dof(table(n, m), "accel_x_mps2") for n, m in ((6, 1200), (24, 1200), (24, 2600)))
+    assert 0 < nu6 < nu24 < nu24_long
+    assert flicker_b_dof(table(6, 1200).assign(accel_x_mps2_flicker_b=0.0), "accel_x_mps2") is None

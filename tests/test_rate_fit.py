@@ -344,3 +344,23 @@ def test_means_asymmetry_interval_is_not_widened_by_the_straight_lines_misfit():
     assert 0.7 < np.median(ratio) < 1.4, np.median(ratio)
     assert 0.7 < np.std(z, ddof=1) < 1.3
     assert abs(np.mean(z)) < 0.4
+
+
+def test_means_fit_excludes_a_plateau_sitting_on_the_rail():
+    """A plateau-means table has no sample scatter: a plateau whose mean sits on the rail set by the saturated
+    plateaus (within a few sems) has clipped samples and is excluded, even when a genuine nonlinearity bends the
+    sweep so that the straight-line rail test misses it. The table is the coverage benchmark's seed 602, trial 1094,
+    z axis (consumer gyro, rail 250 deg/s, injected nonlinearity; true output at -250 deg/s: -250.324; z was -14.5)."""
+    from assets_lib.calibration.means_fit import at_rail, fit_rate_means
+    from assets_lib.calibration.saturation import detect_saturation
+
+    rate = np.array([400, -400, 250, -250, 100, -100, 20, -20, 5, -5, 1, -1, 0], float)
+    mean = np.array([250.0, -250.0, 249.9991, -250.0, 100.3193, -99.7376, 20.3773, -19.6336, 5.3695, -4.6291, 1.3724,
+                     -0.6360, 0.3649])
+    sem = np.array([0.0015] * 4 + [0.0020] * 2 + [0.0019] * 7)
+    assert 3 not in detect_saturation(rate, mean, sem)  # the line test alone keeps the railed plateau
+    fit = fit_rate_means(rate, mean, sem, rate_unit="deg/s", output_unit="deg/s")
+    excluded = {e.row: e.reason for e in fit.excluded}
+    assert {0, 1, 3} <= set(excluded) and "rail" in excluded[3]
+    assert 4 not in excluded and 5 not in excluded
+    assert at_rail(rate, mean, sem, {}) == {}

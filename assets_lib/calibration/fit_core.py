@@ -265,6 +265,7 @@ def fit_linear(
     nuisance: np.ndarray | None = None,
     times: tuple[np.ndarray, np.ndarray] | None = None,
     flicker_tau2: float | None = None,
+    flicker_tau2_dof: float | None = None,
 ) -> LinearFit:
     """[SEED003] eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
 
@@ -273,7 +274,9 @@ def fit_linear(
     column (defaults to the column max-abs); ``pre_excluded`` {row: reason} rows not to use;
     ``outlier_note(row, residual, used_mask) -> str`` may add context to an outlier's reason.
     ``times`` (t_mid_s, t_len_s) of every row: enables the correlated-noise (1/f) GLS of :func:`flicker_gls` for
-    the final fit (needs sems and a constant column).
+    the final fit (needs sems and a constant column). ``flicker_tau2`` the run's 1/f level (:func:`flicker_prior_tau2`)
+    and ``flicker_tau2_dof`` its degrees of freedom (:func:`flicker_b_dof`): with both, the fit marginalises over
+    tau^2 (see :func:`flicker_gls`) instead of taking the estimate as exact.
     ``nuisance`` (p,) bool: columns that absorb what they can (kept while linearly independent, never forcing
     other columns out); a caller reports them only when the whole nuisance group is observable.
     ``screen_columns`` (n, m): extra smooth nuisance regressors used only by the outlier test (e.g. |w|, w^2,
@@ -402,7 +405,8 @@ def fit_linear(
         t_mid, t_len = (np.asarray(v, float) for v in times)
         X = A[np.ix_(idx, np.flatnonzero(obs))]
         if np.all(np.isfinite(t_mid[idx])) and np.all(np.isfinite(t_len[idx])) and np.any(np.all(X == X[0], axis=0)):
-            tau2, gx, gC, gchi2 = flicker_gls(X, y[idx], sig[idx], t_mid[idx], t_len[idx], tau2=flicker_tau2)
+            tau2, gx, gC, gchi2 = flicker_gls(X, y[idx], sig[idx], t_mid[idx], t_len[idx], tau2=flicker_tau2,
+                                               prior_dof=flicker_tau2_dof)
             if tau2 > 0:
                 x, C0, chi2 = gx, gC, gchi2
                 # Sigma's constant part c 11^T (c = 2 ln2 tau^2, the run mean's wander) moves only the constant
@@ -552,7 +556,7 @@ def flicker_covariance(sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray, ta
 
 
 def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray,
-                tau2: float | None = None):
+                tau2: float | None = None, prior_dof: float | None = None):
     """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML ([PATTERSON1971]).
 
     Bias instability (flicker) makes plateau errors correlated over the run: low-frequency contrasts (up vs down
@@ -560,6 +564,17 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
     dominated by plateau-to-plateau differences, does not show it. The REML amplitude of the 1/f component
     restores the right variance for such contrasts. Returns (tau2, x, (X^T S^-1 X)^-1, r^T S^-1 r); tau2 = 0
     means plain WLS.
+
+    A given ``tau2`` is an estimate (the run's Allan analysis). With ``prior_dof`` nu, its degrees of freedom
+    (tau2_hat ~ tau2 chi^2_nu / nu, :func:`flicker_b_dof`), tau^2 is not taken as exact but integrated out
+    ([GELMAN2013] sec. 3.2, the scaled-inverse-chi^2 posterior of a variance): on a log grid the posterior
+    combines that chi-square likelihood with the plateaus' own REML likelihood (their contrasts), prior flat in
+    ln tau^2; the estimate is the posterior mean of the GLS solutions and its covariance the posterior mean of the
+    GLS covariances plus the spread of the solutions (law of total variance). Returned tau2 is the posterior mean.
+    Why: the biases' variance is mostly the run mean's 1/f wander 2 ln2 tau^2, and a B read from 6-26 s plateaus
+    is uncertain (nu 2-60): taken as exact, an underestimated B gives large z (accelerometer bias z sd 1.16-1.17,
+    tactical and consumer, 1.01-1.07 with the true B, in 900 simulated position runs; 1.03-1.07 marginalised).
+    A sem-based upper bound on tau^2 is not used: the sems are computed from the same B (circular).
     """
     from scipy.optimize import minimize_scalar
 
@@ -591,6 +606,8 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
             return np.inf
         return 2 * np.sum(np.log(np.diag(L))) + 2 * np.sum(np.log(np.abs(np.diag(R)))) + float(r @ r)
 
+    if tau2 is not None and tau2 > 0 and prior_dof is not None and np.isfinite(prior_dof) and prior_dof > 0:
+        return _flicker_marginal(parts, nll, float(tau2), float(prior_dof), scale, p)
     if tau2 is not None:
         if tau2 <= 0:
             return 0.0, None, None, None
@@ -608,3 +625,83 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
         return 0.0, None, None, None
     Rinv = np.linalg.solve(R, np.eye(p))
     return tau2, x, Rinv @ Rinv.T, float(r @ r)
+
+
+#: log grid of tau^2 / tau2_hat for the marginalisation over the 1/f level (:func:`flicker_gls`)
+FLICKER_GRID = np.linspace(-7.0, 4.0, 45)
+
+
+def _flicker_marginal(parts, nll, t0: float, nu: float, scale: float, p: int):
+    """Posterior-mean GLS over tau^2 (see :func:`flicker_gls`): grid in ln tau^2, weights from the Allan estimate's
+    chi-square likelihood and the plateaus' REML likelihood."""
+    grid = t0 * np.exp(FLICKER_GRID)
+    sols, logw = [], []
+    for t2 in grid:
+        try:
+            L, R, x, r = parts(float(t2))
+        except np.linalg.LinAlgError:
+            continue
+        Rinv = np.linalg.solve(R, np.eye(p))
+        lw = -0.5 * (nll(np.log(t2 / scale)) + nu * (t0 / t2 + np.log(t2)))
+        sols.append((t2, x, Rinv @ Rinv.T))
+        logw.append(lw)
+    if not sols:
+        return 0.0, None, None, None
+    w = np.exp(np.asarray(logw) - np.max(logw))
+    w /= w.sum()
+    xs = np.array([s_[1] for s_ in sols])
+    xm = w @ xs
+    d = xs - xm
+    C = np.einsum("k,kij->ij", w, np.array([s_[2] for s_ in sols])) + (d * w[:, None]).T @ d
+    tm = float(w @ np.array([s_[0] for s_ in sols]))
+    L, R, x, r = parts(tm)
+    return tm, xm, C, float(r @ r)  # chi-square of the GLS at the posterior-mean tau^2
+
+
+def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float | None:
+    """Degrees of freedom nu of the run's 1/f level F = (2 ln2 / pi) B^2 as segmentation's pooled Allan fit reads
+    it ([IEEE952] C.23 fitted to the EDF-weighted mean overlapping Allan variance of the plateaus, [NIST1065]
+    EDF), from the plateau table: per plateau k its length T_k, samples n_k and white level N_k^2 = (sem_k^2 - F)
+    T_k; the pooled estimate at cluster size m (octaves up to ``max_cluster_fraction`` n_k) has variance
+    2 sum_k e_km avar_km^2 / E_m^2 (e_km = (n_k - 2m + 1) / m, E_m = sum_k e_km); the Fisher information of
+    (white scale, F) over the octaves (taken as independent) gives var(F_hat), nu = 2 F^2 / var(F_hat).
+    None without the columns or an estimated B."""
+    need = (f"{channel}_sem", f"{channel}_flicker_b", "n_samples", "t_start_s", "t_end_s")
+    if any(c not in p for c in need) or not len(p):
+        return None
+    b = float(p[f"{channel}_flicker_b"].iloc[0])
+    if not np.isfinite(b) or b <= 0:
+        return None
+    F = FLICKER_WHITE / np.pi * b**2
+    n = p["n_samples"].to_numpy(float)
+    T = (p["t_end_s"] - p["t_start_s"]).to_numpy(float)
+    sem2 = p[f"{channel}_sem"].to_numpy(float) ** 2
+    ok = (n >= 4) & (T > 0) & np.isfinite(sem2)
+    if ok.sum() < 2:
+        return None
+    n, T, sem2 = n[ok], T[ok], sem2[ok]
+    dt = float(np.median(T / np.maximum(n - 1, 1)))
+    N2 = np.maximum(sem2 - F, 0.0) * T
+    caps = np.maximum(1, (max_cluster_fraction * n).astype(int))
+    info = np.zeros((2, 2))
+    for m in 2 ** np.arange(int(np.log2(caps.max())) + 1):
+        sel = caps >= m
+        e = np.maximum(1.0, (n[sel] - 2 * m + 1) / m)
+        E = e.sum()
+        white = N2[sel] / (m * dt)
+        a_k = white + F
+        var = 2.0 * np.sum(e * a_k**2) / E**2
+        J = np.array([np.sum(e * white) / E, 1.0])
+        info += np.outer(J, J) / var
+    try:
+        vF = float(np.linalg.inv(info)[1, 1])
+    except np.linalg.LinAlgError:
+        return None
+    return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
+
+
+#: the octave Allan variances of one window are correlated (overlapping clusters share samples), which the
+#: independent-octave information of :func:`flicker_b_dof` ignores: the empirical nu = 2 / var(F_hat / F) over 900
+#: simulated position runs (5 plans x 3 grades, 60 runs each) was 0.45-0.70 of the independent one where B is well
+#: detected (navigation, consumer; median 0.5) and 0.25-0.45 for the tactical accelerometer (B often undetected)
+FLICKER_DOF_EFFICIENCY = 0.5

@@ -155,6 +155,44 @@ def _plateau_times(times, n: int):
     return 0.5 * (a + b), b - a
 
 
+#: a plateau whose mean lies within this many standard errors of a flat-top plateau's level sits at the rail
+RAIL_SEMS = 5.0
+
+
+def at_rail(x, y, sem, saturated: dict[int, str], *, n_sem: float = RAIL_SEMS, x_unit: str = "",
+            x_factor: float = 1.0) -> dict[int, str]:
+    """Plateaus at the rail of a plateau-means table: once a side of the sweep has saturated plateaus (their level is
+    the rail), an unflagged plateau of that side whose mean lies within ``n_sem`` standard errors of the rail has
+    clipped samples (its sample scatter is at least its sem), so its mean is biased towards the rail.
+
+    The straight-line rail test of :func:`~assets_lib.calibration.saturation.detect_saturation` needs each
+    plateau's sample standard deviation, which a table of means does not carry, and a line: under a genuine
+    nonlinearity of the sensor the line misses the end plateaus by more than the noise. Without this test a
+    consumer gyro with injected nonlinearity kept a -250 deg/s plateau sitting on the -250 deg/s rail (true output
+    -250.32): means-fit nonlinearity z -14.5 in the coverage benchmark (seed 602, trial 1094).
+    """
+    out: dict[int, str] = {}
+    if sem is None or not saturated:
+        return out
+    x, y, sem = (np.asarray(v, float) for v in (x, y, sem))
+    mid = float(np.nanmedian(y))
+    for side in (1.0, -1.0):
+        rails = [r for r in saturated if np.sign(y[r] - mid) == side]
+        if not rails:
+            continue
+        level = float(np.median(y[rails]))
+        s_rail = float(np.median(sem[rails]))
+        for k in np.flatnonzero(np.isfinite(y) & np.isfinite(sem) & (np.sign(y - mid) == side)):
+            if int(k) in saturated:
+                continue
+            d = abs(y[k] - level)
+            if d <= n_sem * np.hypot(sem[k], s_rail):
+                out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean lies "
+                               f"{d / np.hypot(sem[k], s_rail):.1f} standard errors from the rail set by the "
+                               f"saturated plateau(s) ({level:.6g}): clipped samples bias the mean")
+    return out
+
+
 def fit_rate_means(
     rate,
     output,
@@ -167,6 +205,7 @@ def fit_rate_means(
     rel_tol: float = DEFAULT_REL_TOL,
     times=None,
     flicker_b: float | None = None,
+    flicker_b_dof: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
@@ -180,7 +219,9 @@ def fit_rate_means(
     ``times`` (t_start_s, t_end_s) of every plateau and ``flicker_b`` (the run's 1/f level B, output unit) enable
     the correlated-noise GLS of :func:`~assets_lib.calibration.fit_core.fit_linear` (as the rate fit has it):
     without them the plateaus are independent, which bias instability breaks (the 1/f noise shared between
-    plateaus minutes apart; means-fit K+, K-, asymmetry z sd 1.1-1.5 in the coverage benchmark).
+    plateaus minutes apart; means-fit K+, K-, asymmetry z sd 1.1-1.5 in the coverage benchmark). ``flicker_b_dof``:
+    the degrees of freedom of that B (:func:`~assets_lib.calibration.fit_core.flicker_b_dof` from a plateau table):
+    the fit then integrates over the 1/f level instead of taking B as exact.
     """
     _check_mode(exclusion)
     if rate_unit not in GYRO_UNITS_TO_RADPS:
@@ -194,6 +235,8 @@ def fit_rate_means(
     sat: dict[int, str] = {}
     if exclusion != "none":
         sat = detect_saturation(w, y, sig, x_unit=rate_unit, x_factor=1 / fac, rail=exclusion != "flat-top")
+        if exclusion != "flat-top":
+            sat.update(at_rail(w, y, sig, sat, x_unit=rate_unit, x_factor=1 / fac))
     A = np.column_stack([np.ones(len(w)), w])
     names = ("zero_output", "scale_factor")
     scales = np.array([1.0, max(np.nanmax(np.abs(w)), 1e-300)])
@@ -203,7 +246,7 @@ def fit_rate_means(
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
-                     flicker_tau2=flicker_prior_tau2(flicker_b))
+                     flicker_tau2=flicker_prior_tau2(flicker_b), flicker_tau2_dof=flicker_b_dof)
     U0, sU0 = fit.get("zero_output")
     K, sK = fit.get("scale_factor")
     k = fit.names.index("scale_factor")
@@ -253,6 +296,7 @@ def fit_tumble_means(
     rel_tol: float = DEFAULT_REL_TOL,
     times=None,
     flicker_b: float | None = None,
+    flicker_b_dof: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
@@ -260,7 +304,8 @@ def fit_tumble_means(
     K3/K1 [ug/g^2]; with ``misalignment_term`` also delta_o (cos theta term / K1) [rad]. Coefficients the
     positions cannot separate are reported unobservable (e.g. K2 without a horizontal position).
     ``exclusion``: 'auto' (Bonferroni outlier test) or 'none' ('saturation' and 'flat-top' act like 'none').
-    ``times`` / ``flicker_b``: plateau (t_start_s, t_end_s) and the run's 1/f level, as in :func:`fit_rate_means`.
+    ``times`` / ``flicker_b`` / ``flicker_b_dof``: plateau (t_start_s, t_end_s), the run's 1/f level and its degrees
+    of freedom, as in :func:`fit_rate_means`.
     """
     _check_mode(exclusion)
     if angle_unit not in ANGLE_UNITS_TO_RAD:
@@ -285,7 +330,7 @@ def fit_tumble_means(
     scales = np.array([1.0, 1.0] + ([1.0] if misalignment_term else []) + [1.0, 0.5])
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=np.array(optional), rel_tol=rel_tol,
                      outlier_test=exclusion == "auto", alpha=alpha, times=_plateau_times(times, len(th)),
-                     flicker_tau2=flicker_prior_tau2(flicker_b))
+                     flicker_tau2=flicker_prior_tau2(flicker_b), flicker_tau2_dof=flicker_b_dof)
     coefs = []
     units = {"K0": ou, "K1": f"{ou}/g", "K2": f"{ou}/g^2", "K3": f"{ou}/g^2", "delta_o_term": f"{ou}/g"}
     for j, nm in enumerate(names):

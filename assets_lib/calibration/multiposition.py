@@ -34,6 +34,7 @@ from assets_lib.calibration.fit_core import (
     LinearFit,
     fit_linear,
     flicker_b,
+    flicker_b_dof,
     flicker_prior_tau2,
 )
 from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
@@ -177,6 +178,7 @@ def fit_accel_multiposition(
     if p.empty:
         raise ValueError(f"no plateaus of kind {kinds}")
     b_cols = [f"accel_{a}_mps2_flicker_b" for a in AXES]
+    use_b_dof = flicker_b_mps2 is None  # the run's own B (from the table): its degrees of freedom are known
     if flicker_b_mps2 is None and all(c in p for c in b_cols):
         # the run's pooled Allan model from segmentation sets the 1/f level between plateaus
         flicker_b_mps2 = p[b_cols].iloc[0].to_numpy(float)
@@ -217,7 +219,8 @@ def fit_accel_multiposition(
         fit = fit_linear(A, y, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha, nuisance=np.array(nuisance),
                          times=_times(p) if correlated_noise else None,
-                         flicker_tau2=None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])))
+                         flicker_tau2=None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])),
+                         flicker_tau2_dof=flicker_b_dof(p, f"accel_{a}_mps2") if use_b_dof else None)
         ks = names.index("scale_factor")
         mis = {}
         for j in others:
@@ -336,7 +339,8 @@ def fit_gyro_static(
         fit = fit_linear(A, z, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,
                          times=_times(p) if correlated_noise else None,
-                         flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")))
+                         flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")),
+                         flicker_tau2_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
         if np.any(Cm):
             # x = P z with z = y - W m: Cov += P W Cm W^T P^T (rate-fit uncertainty of the earth-rate projection)
             obs = np.flatnonzero(fit.observable)
