@@ -300,13 +300,19 @@ def write_case(root: Path, c: dict, seed: int, static: bool = True, cycles: int 
             run.imu_raw["temperature"] = np.round(T + 0.02 * np.random.default_rng(rs).standard_normal(t.size), 2)
             write_run(run, landing, "parquet", truth_dir=root / "_simtruth")
             runs.append(rid)
+    truth = case_truth(c, runs)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    (truth_dir / f"{c['device_id']}.json").write_text(json.dumps(truth, indent=1, default=float))
+    return truth
+
+
+def case_truth(c: dict, runs: list[str]) -> dict:
+    """The sealed truth record of a case whose device recorded ``runs`` (what the scorer reads)."""
     truth = {k: v for k, v in c.items() if k not in ("params",)}
     truth["params"] = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray)) else v) for k, v in c["params"].items()}
     truth["runs"] = runs
     truth["affected_runs"] = _affected(c, runs)
     truth["sensor"] = _sensor(c)
-    truth_dir.mkdir(parents=True, exist_ok=True)
-    (truth_dir / f"{c['device_id']}.json").write_text(json.dumps(truth, indent=1, default=float))
     return truth
 
 
