@@ -15,6 +15,13 @@ term. Temperature: a chamber profile that differs per run (so temperature is not
 the ``confounded`` cases (self-heating only: temperature rises with time since power-on). The truth goes to
 ``<root>/truth/<device>.json`` with its sha256 in ``<root>/truth/SEALED.sha256``; the diagnoser is pointed at
 ``<root>/landing`` only. Scorer: reads ``<root>/reports/<device>.json`` and the truth, nothing else.
+
+Tiers: quick **37 devices** (10 null, 11 families clear, 5 near-limit, 2 confounded, 3 noise-only, 3 outside, 1
+latency, then 2 pairs: WH-035, WH-036), full 178 (172 single-effect, then 6 pairs). A *pair* device carries two
+sealed effects of non-aliased families at their clear magnitudes, each in its generator form above, one after the
+other in the simulator's sensor chain; its truth lists ``families``/``magnitudes``/``channels``/``library_forms``
+(``family`` = the first), its affected runs and sensors are the union. Pairs are appended after the latency case
+so the single-effect device ids never move; they are scored apart (``pair_*``; not in top-1 or localisation).
 """
 
 from __future__ import annotations
