@@ -15,6 +15,13 @@ term. Temperature: a chamber profile that differs per run (so temperature is not
 the ``confounded`` cases (self-heating only: temperature rises with time since power-on). The truth goes to
 ``<root>/truth/<device>.json`` with its sha256 in ``<root>/truth/SEALED.sha256``; the diagnoser is pointed at
 ``<root>/landing`` only. Scorer: reads ``<root>/reports/<device>.json`` and the truth, nothing else.
+
+Tiers: quick **37 devices** (10 null, 11 families clear, 5 near-limit, 2 confounded, 3 noise-only, 3 outside, 1
+latency, then 2 pairs: WH-035, WH-036), full 178 (172 single-effect, then 6 pairs). A *pair* device carries two
+sealed effects of non-aliased families at their clear magnitudes, each in its generator form above, one after the
+other in the simulator's sensor chain; its truth lists ``families``/``magnitudes``/``channels``/``library_forms``
+(``family`` = the first), its affected runs and sensors are the union. Pairs are appended after the latency case
+so the single-effect device ids never move; they are scored apart (``pair_*``; not in top-1 or localisation).
 """
 
 from __future__ import annotations
@@ -225,9 +232,44 @@ def cases(tier: str) -> list[dict]:
     for kind, p in (outside if tier == "quick" else outside * 3):
         C.append({"kind": kind, "grade": "tactical", "params": p, "category": "outside", "family": None})
     C.append({"kind": "latency", "grade": "tactical", "params": {"delay_s": 0.005}, "category": "not_testable", "family": "latency"})
+    # pairs (appended last, so the single-effect ids above never move): two sealed effects on one device, each in
+    # its generator form above, at the clear magnitude, from families whose signatures are not aliased (no pair
+    # inside one of effects.md sec. 2's confounded groups; different channels, and where possible different runs)
+    by_fam = {fam: (p, mag) for fam, p, mag in lib}
+    pairs = [("tactical", "temperature_bias", "lever_arm"),  # gyro_z thermal lag / accel centripetal, rate runs
+             ("tactical", "g_sensitivity", "scale_factor_asymmetry")]  # gyro_x positions / gyro_y rate runs
+    if tier == "full":
+        pairs += [("tactical", "warmup_bias", "table_wobble"),  # gyro_y power-on / accel tilt
+                  ("tactical", "temperature_scale_factor", "table_rate_error"),  # gyro_x rate x T / gyro_z 2/rev
+                  ("navigation", "temperature_bias", "lever_arm"),
+                  ("consumer", "g_sensitivity", "scale_factor_asymmetry")]
+    for grade, f1, f2 in pairs:
+        eff = [{"family": f, "kind": f, "params": by_fam[f][0], "magnitude": by_fam[f][1],
+                "channel": _truth_channel(f, by_fam[f][0]), "library_form": f in library_form} for f in (f1, f2)]
+        C.append({"kind": "pair", "grade": grade, "params": {}, "effects": eff, "category": "pair", "family": f1,
+                  "families": [f1, f2], "magnitude": eff[0]["magnitude"], "magnitudes": [e["magnitude"] for e in eff],
+                  "channels": [e["channel"] for e in eff], "library_form": eff[0]["library_form"],
+                  "library_forms": [e["library_form"] for e in eff]})
     for i, c in enumerate(C):
         c["device_id"] = f"WH-{i:03d}-{c['category'][:4].upper()}"
     return C
+
+
+CHANNEL_NAMES = ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z")
+
+
+def _truth_channel(family: str, params: dict) -> str | None:
+    """The report's channel name of a sealed effect (None for the device-level lever arm and table wobble)."""
+    if family in ("lever_arm", "table_wobble", "table_rate_error", "timebase_error"):
+        return None
+    return CHANNEL_NAMES[params.get("channel", 0)]
+
+
+def _sub_effects(c: dict) -> list[dict]:
+    """The sealed effects of a case: a pair's two, else the case itself (kind "none": no effect)."""
+    if c["kind"] == "pair":
+        return c["effects"]
+    return [] if c["kind"] == "none" else [{"kind": c["kind"], "params": c["params"]}]
 
 
 def write_case(root: Path, c: dict, seed: int, static: bool = True, cycles: int = 3) -> dict:
@@ -246,34 +288,45 @@ def write_case(root: Path, c: dict, seed: int, static: bool = True, cycles: int 
                          False))
         for name, rid, dt, kw, tab in plan:
             rs = int.from_bytes(hashlib.sha256(f"{c['device_id']}/{rid}".encode()).digest()[:4], "little")
-            params = dict(c["params"])
-            if c["kind"] == "bias_step":
-                params["run_seed_hit"] = int.from_bytes(hashlib.sha256(f"{c['device_id']}/pc01-rate".encode())
-                                                        .digest()[:4], "little")
-            hid = Hidden(c["kind"], params, dt.total_seconds(), rs, bool(c.get("confounded")))
-            effects = (DEFAULT_EFFECTS[0], DEFAULT_EFFECTS[1], hid, DEFAULT_EFFECTS[2]) if c["kind"] != "none" \
-                else DEFAULT_EFFECTS
+            hid = []
+            for e in _sub_effects(c):  # a pair's two effects act one after the other in the sensor chain
+                params = dict(e["params"])
+                if e["kind"] == "bias_step":
+                    params["run_seed_hit"] = int.from_bytes(hashlib.sha256(f"{c['device_id']}/pc01-rate".encode())
+                                                            .digest()[:4], "little")
+                hid.append(Hidden(e["kind"], params, dt.total_seconds(), rs, bool(c.get("confounded"))))
+            effects = (DEFAULT_EFFECTS[0], DEFAULT_EFFECTS[1], *hid, DEFAULT_EFFECTS[2])
             run = simulate_run(truth, name, rid, power_cycle_index=cycle, start_time_utc=start + dt, seed=seed,
                                effects=effects, table_log=tab, plan_kwargs=kw)
             # the recorded thermometer: chamber profile (+ sensor noise, 0.01 degC resolution)
             t = run.imu_raw["time_s"].to_numpy(float)
-            if c["kind"] == "timebase_error":  # the IMU clock runs fast against the table clock
-                run.imu_raw["time_s"] = np.round(t * (1.0 + c["params"]["eps"]), 9)
+            for e in _sub_effects(c):
+                if e["kind"] == "timebase_error":  # the IMU clock runs fast against the table clock
+                    run.imu_raw["time_s"] = np.round(t * (1.0 + e["params"]["eps"]), 9)
             T = chamber_profile(t, rs, bool(c.get("confounded")))
             run.imu_raw["temperature"] = np.round(T + 0.02 * np.random.default_rng(rs).standard_normal(t.size), 2)
             write_run(run, landing, "parquet", truth_dir=root / "_simtruth")
             runs.append(rid)
-    truth = {k: v for k, v in c.items() if k not in ("params",)}
-    truth["params"] = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray)) else v) for k, v in c["params"].items()}
-    truth["runs"] = runs
-    truth["affected_runs"] = _affected(c, runs)
-    truth["sensor"] = _sensor(c)
+    truth = case_truth(c, runs)
     truth_dir.mkdir(parents=True, exist_ok=True)
     (truth_dir / f"{c['device_id']}.json").write_text(json.dumps(truth, indent=1, default=float))
     return truth
 
 
+def case_truth(c: dict, runs: list[str]) -> dict:
+    """The sealed truth record of a case whose device recorded ``runs`` (what the scorer reads)."""
+    truth = {k: v for k, v in c.items() if k not in ("params",)}
+    truth["params"] = {k: (list(v) if isinstance(v, (list, tuple, np.ndarray)) else v) for k, v in c["params"].items()}
+    truth["runs"] = runs
+    truth["affected_runs"] = _affected(c, runs)
+    truth["sensor"] = _sensor(c)
+    return truth
+
+
 def _affected(c, runs):
+    if c["kind"] == "pair":  # the union, in run order
+        hit = {r for e in c["effects"] for r in _affected(e, runs)}
+        return [r for r in runs if r in hit]
     k = c["kind"]
     # table_wobble is not here: the generator tilts the table's base in every run, so the static poses of the
     # position runs carry it too (a constant tilt of gravity seen in each pose's body axes)
@@ -288,6 +341,10 @@ def _affected(c, runs):
 
 
 def _sensor(c):
+    """"gyro", "accel" or None (either); a pair: its effects' union, a list when they differ, None if either is."""
+    if c["kind"] == "pair":
+        u = [_sensor(e) for e in c["effects"]]
+        return None if None in u else (u[0] if len(set(u)) == 1 else sorted(set(u)))
     k = c["kind"]
     if k in ("lever_arm", "vibration"):
         return "accel"
@@ -351,6 +408,38 @@ def _ci(k: int, n: int) -> str:
     return f"{k}/{n} = {k / n:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
+def _covers(e: dict, m: float) -> bool:
+    """Whether a reported effect's magnitude interval [ci_lo, ci_hi] covers the truth's |magnitude| m (either sign
+    when the interval straddles zero, magnitudes of a sign-free family compared in absolute value otherwise)."""
+    lo, hi = e.get("ci_lo"), e.get("ci_hi")
+    if lo is None or hi is None:
+        return False
+    if np.sign(lo) == np.sign(hi):
+        return bool(min(abs(lo), abs(hi)) <= m <= max(abs(lo), abs(hi)))
+    return bool(lo <= m <= hi or lo <= -m <= hi)
+
+
+def _pair_row(t: dict, r: dict) -> dict:
+    """A pair device's figures: which truth families are among the accepted effects (a family matched once, on its
+    truth channel when the report names one there, else on any), each matched library-form family's interval
+    coverage, and the accepted effects that belong to neither truth family (spurious)."""
+    eff = list(r["effects"])
+    used: set[int] = set()
+    found, cov = [], []
+    for fam, ch, mag, lf in zip(t["families"], t["channels"], t["magnitudes"], t["library_forms"]):
+        idx = [i for i, e in enumerate(eff) if e["family"] == fam and i not in used]
+        idx = sorted(idx, key=lambda i: eff[i]["channel"] != ch)  # the truth channel first
+        if idx:
+            used.add(idx[0])
+            found.append(True)
+            if lf:
+                cov.append(_covers(eff[idx[0]], abs(mag)))
+        else:
+            found.append(False)
+    return {"found": found, "pair_cov": cov,
+            "spurious": [e["family"] + "/" + str(e["channel"]) for e in eff if e["family"] not in t["families"]]}
+
+
 def score(root: Path) -> dict:
     truths = {p.stem: json.loads(p.read_text()) for p in (root / "truth").glob("WH-*.json")}
     reps = {p.stem: json.loads(p.read_text()) for p in (root / "reports").glob("WH-*.json")}
@@ -369,18 +458,23 @@ def score(root: Path) -> dict:
             sen_ok = t["sensor"] is None or top["channel"] is None or top["channel"].startswith(t["sensor"])
             on_target = bool(run_ok and sen_ok)  # the top "where" view, whether or not a gap was detected
             loc = bool(on_target and r["verdict"] != "no_gap")
+        if top is not None and t["category"] == "pair":  # localisation of a pair: on either effect's runs/sensor
+            sens = t["sensor"] if isinstance(t["sensor"], list) else [t["sensor"]]
+            run_ok = top["run_id"] is None or top["run_id"] in t["affected_runs"]
+            sen_ok = None in sens or top["channel"] is None or any(top["channel"].startswith(x) for x in sens)
+            on_target = bool(run_ok and sen_ok)
+            loc = bool(on_target and r["verdict"] != "no_gap")
         cov = None
         if t["category"] == "family_clear" and t.get("library_form") and fams and fams[0] == t["family"]:
-            e = r["effects"][0]
-            m = abs(t["magnitude"])
-            cov = e["ci_lo"] is not None and e["ci_hi"] is not None and \
-                min(abs(e["ci_lo"]), abs(e["ci_hi"])) <= m <= max(abs(e["ci_lo"]), abs(e["ci_hi"])) \
-                if np.sign(e["ci_lo"] or 0) == np.sign(e["ci_hi"] or 0) else (e["ci_lo"] <= m <= e["ci_hi"] or
-                                                                              e["ci_lo"] <= -m <= e["ci_hi"])
-        rows.append({"device": dev, "category": t["category"], "truth": t.get("family") or t["kind"], "verdict": r["verdict"],
-                         "top1": fams[0] if fams else None, "in_amb": (t.get("family") in amb) if t.get("family") else None,
-                         "loc": loc, "top_on_target": on_target, "cov": cov, "shrink": r["shrink"]["ratio"],
-                         "top_view": (top["view"], top["run_id"], top["channel"]) if top else None})
+            cov = _covers(r["effects"][0], abs(t["magnitude"]))
+        row = {"device": dev, "category": t["category"], "truth": t.get("family") or t["kind"], "verdict": r["verdict"],
+               "top1": fams[0] if fams else None, "in_amb": (t.get("family") in amb) if t.get("family") else None,
+               "loc": loc, "top_on_target": on_target, "cov": cov, "shrink": r["shrink"]["ratio"],
+               "top_view": (top["view"], top["run_id"], top["channel"]) if top else None}
+        if t["category"] == "pair":
+            row["truth"] = "+".join(t["families"])
+            row.update(_pair_row(t, r))
+        rows.append(row)
     by = lambda cat: [x for x in rows if x["category"] == cat]
     null = by("null")
     res["null_false_positive"] = _ci(sum(x["verdict"] != "no_gap" for x in null), len(null))
@@ -402,16 +496,36 @@ def score(root: Path) -> dict:
     # localisation is a property of a detected gap (detection itself is scored by detected_near and the power
     # curves): the target figure is over the detected cases; the unconditional one (an undetected case counts
     # as not localised) is reported beside it, and so is where the top view of an undetected case points
-    scored = [x for x in rows if x["loc"] is not None]
+    # pairs: scored on their own (never in the single-family top-1 figures above); a pair's library-form
+    # intervals join the magnitude-coverage figure below
+    pr = by("pair")
+    res["pair_both_accepted"] = _ci(sum(all(x["found"]) for x in pr), len(pr))
+    res["pair_at_least_one"] = _ci(sum(any(x["found"]) for x in pr), len(pr))
+    res["pair_detected"] = _ci(sum(x["verdict"] != "no_gap" for x in pr), len(pr))
+    res["pair_spurious_effect"] = _ci(sum(bool(x["spurious"]) for x in pr), len(pr))
+    pc = [c for x in pr for c in x["pair_cov"]]
+    res["pair_magnitude_ci_coverage_library_form"] = _ci(sum(pc), len(pc))
+    # accepted effects outside the truth on the effect-bearing devices with a library truth (a false positive
+    # that is not a null device's): one figure over single-family and pair devices
+    eff_dev = [x for x in rows if x["category"] in ("family_clear", "family_near", "pair")]
+    res["wrong_family_accepted"] = _ci(
+        sum(bool(x["spurious"]) if x["category"] == "pair" else
+            any(e["family"] != x["truth"] for e in reps[x["device"]]["effects"]) for x in eff_dev), len(eff_dev))
+    scored = [x for x in rows if x["loc"] is not None and x["category"] != "pair"]
     det = [x for x in scored if x["verdict"] != "no_gap"]
     und = [x for x in scored if x["verdict"] == "no_gap"]
     res["localisation"] = _ci(sum(x["loc"] for x in det), len(det))
     res["localisation_unconditional"] = _ci(sum(x["loc"] for x in scored), len(scored))
     res["undetected_top_view_on_target"] = _ci(sum(x["top_on_target"] for x in und), len(und))
-    covs = [x["cov"] for x in rows if x["cov"] is not None]
+    pl = [x for x in pr if x["loc"] is not None]
+    res["pair_localisation"] = _ci(sum(x["loc"] for x in pl if x["verdict"] != "no_gap"),
+                                   sum(x["verdict"] != "no_gap" for x in pl))
+    covs = [x["cov"] for x in rows if x["cov"] is not None] + pc
     res["magnitude_ci_coverage_library_form"] = _ci(sum(covs), len(covs))
     sh = [x["shrink"] for x in fam if x["top1"] == x["truth"] and x["shrink"] is not None]
     res["median_shrink_correct"] = float(np.median(sh)) if sh else None
+    shp = [x["shrink"] for x in pr if all(x["found"]) and x["shrink"] is not None]
+    res["median_shrink_pair_both"] = float(np.median(shp)) if shp else None
     res["rows"] = rows
     return res
 
