@@ -64,7 +64,7 @@ def run_stage(context, graph: StageGraph, spec: StageSpec, store: VersionedStore
     keys = [FLEET_KEY] if spec.level == "fleet" else list(context.partition_keys)
     outcomes = []
     for key in keys:
-        o = compute_partition(graph, spec, key, store, archive, run_id=context.run_id)
+        o = compute_partition(graph, spec, key, store, archive, run_id=context.run.run_id)
         if o.failed:
             context.log.error(f"{spec.name} failed for {key}: {o.reason}")
         outcomes.append(o)
