@@ -272,8 +272,13 @@ def step_gates(null_totals: list, base_atoms: list[int], null_sd: float) -> dict
     candidate's score *at this step* (the accepted ``base_atoms`` in the model, as on the real data) over the
     base-twin replicates (simreal.md sec. 5.2). At the first step (``base_atoms`` empty) this is the first-step
     calibration; a later step is calibrated the same way, conditional on what has been accepted."""
-    return {gi: max(GATE, m + null_sd * sd) if n > 2 else GATE
-            for gi, (m, sd, n) in step_null(null_totals, base_atoms).items()}
+    return gates_from_null(step_null(null_totals, base_atoms), null_sd)
+
+
+def gates_from_null(null: dict, null_sd: float) -> dict:
+    """group -> max(2 ln 1000, mean + ``null_sd`` sd) from :func:`step_null`'s (mean, sd, n); 2 ln 1000 alone with
+    fewer than three replicates."""
+    return {gi: max(GATE, m + null_sd * sd) if n > 2 else GATE for gi, (m, sd, n) in null.items()}
 
 
 def step_null(null_totals: list, base_atoms: list[int]) -> dict:
@@ -331,7 +336,7 @@ def select(d: Design, thresholds: dict | None = None, null_designs: list | None 
             first = scores
         nul = step_null(null_t, base_atoms) if null_t else {}
         if null_t and (step > 0 or not thresholds):
-            thr = {gi: max(GATE, m + null_sd * sd) if n > 2 else GATE for gi, (m, sd, n) in nul.items()}
+            thr = gates_from_null(nul, null_sd)
         for s in scores:
             s.gate = max(GATE, thr.get(s.group, GATE))
             s.p_step = null_p_step(s.delta_lpd, nul[s.group], len(scores)) if s.group in nul else None
