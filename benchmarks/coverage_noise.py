@@ -60,11 +60,12 @@ of the minimum, edges interpolated between grid points) when the Markov term is 
 a bound the fit prints T_c as a bound too (no point value) and it is scored as one. The Markov term is identified
 when the joint (q_c, T_c) set excludes q_c = 0 and the supremum test over the T_c grid ([DAVIES1987]) rejects "no
 Markov term" (session 7: the chi2_1 cut alone let 3.5 % of the channels take a chance short-tau gain at T_c
-0.02-3 s for a Markov term, T_c z sd 1.27-1.32). Not met, with reasons (session 7, 116 Markov-plan trials of
-seed 16021, benchmarks/README.md): markov_q mean z +0.25 (gyro) / +0.46 (accel) and T_c -0.27 / -0.10 on
-identified channels whatever the interval width (a T_c read low, q_c = sqrt(theta_M) / T_c high; not the selection,
-not the short mode: no short-T_c pick remains); N, Q and B in the Markov fit where the Markov term is not identified
-(the fit keeps the term at the profile's T_c: refitting without it charged its AVAR to B, z +1.1 to +1.8).
+0.02-3 s for a Markov term, T_c z sd 1.27-1.32), and markov_q is printed at its set's centre (every term free).
+Not met, with reasons (session 7, 116 Markov-plan trials of seed 16021, benchmarks/README.md): markov_q mean z
++0.17 (gyro) / +0.34 (accel) and T_c -0.27 / -0.10 on identified channels, also where T_c is resolved to a few
+percent (T_c <= 3 s: z_q +0.29), so not the short mode (no short-T_c pick remains) and not only the selection;
+accel markov_q coverage 0.915; N, Q and B in the Markov fit where the Markov term is not identified (the fit keeps
+the term at the profile's T_c: refitting without it charged its AVAR to B, z +1.1 to +1.8).
 Which terms are bounds is the fit's decision (``assets_lib.noise.identification``): a term whose profile-likelihood
 interval, every other term free, reaches zero is not identified by the record (collinear B, K and R at the
 long-tau end of a short record) and is printed as an upper bound, tested at its own AVAR covariance. Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
