@@ -68,20 +68,6 @@ def test_term_below_the_curves_resolution_is_dropped_and_bounded():
         assert not q.is_upper_bound and q.ci_lo < true < q.ci_hi
 
 
-def test_avar_prediction_at_the_record_length_keeps_an_eliminated_flicker_floor():
-    """A 200 s record whose flicker floor is not identified (B eliminated, printed as a bound): the AVAR predicted
-    at the record length (the turn-on bias standard error, [IEEE952] C.1) still carries the floor. The eliminated
-    fit alone (N only) gave 0.59 of it here, and the noise-corrected bias repeatability came out biased high."""
-    p = AllanParams(q=0.0, n=4.36e-5, b=3.88e-6, k=0.0, r=0.0)  # the tactical gyro of example_device
-    fit = ni.fit_noise(_model_result(p, n=20_000))
-    assert fit.parameter("B").is_upper_bound and fit.theta[fit.terms.index("B")] == 0.0
-    t = np.array([200.0])
-    assert (fit.design(t) @ fit.theta)[0] < 0.6 * p.avar(t)[0]
-    avar_t, dof_t = fit.model_avar_dof(t)
-    assert avar_t[0] == pytest.approx(p.avar(t)[0], rel=1e-6)
-    assert 0.0 < dof_t[0] < np.inf
-
-
 def test_absent_terms_are_upper_bounds():
     p = AllanParams(n=2e-5, k=1e-6)
     fit = ni.fit_noise(_model_result(p))

@@ -269,10 +269,6 @@ class NoiseFit:
     discrepancy: float = 0.0  #: relative model discrepancy delta added to the weights (0: none needed)
     outside_tau_ranges: tuple = ()  #: ((tau_lo, tau_hi, min ratio, max ratio), ...) model/curve outside check_ci
     warnings: tuple = ()
-    #: the fit :meth:`model_avar_dof` predicts from (None: theta): the kept terms plus Q, N and B (terms whose
-    #: AVAR does not grow with tau) refitted non-negative, and its active-set Wald covariance
-    theta_predict: np.ndarray | None = None
-    theta_predict_cov: np.ndarray | None = None
 
     @property
     def matches_curve(self) -> bool:
@@ -310,24 +306,10 @@ class NoiseFit:
 
     def model_avar_dof(self, tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The model AVAR at ``tau_s`` and its degrees of freedom 2 sigma^4 / (g' C g) (Satterthwaite, C the
-        Wald covariance of theta; inf when C gives it no variance), predicted from ``theta_predict`` when present:
-        the kept terms plus Q, N and B refitted. The eliminated fit (``theta``) holds an unidentified term at zero:
-        on a 200 s run the gyro B (printed as a bound in 78 % of the runs) then leaves the flicker floor out of the
-        AVAR at the record length (median 0.58 of the truth's, tactical gyros), and the turn-on bias standard error
-        built on it ([IEEE952] C.1) was too small (noise-corrected repeatability biased high,
-        benchmarks/coverage_noise.py). K and R are not added back: their AVAR grows with tau, and a value fitted
-        to noise, extrapolated to a record length beyond the fit range (m <= n / 4), overstated the AVAR there
-        10-150x (the fit with every term free)."""
+        Wald covariance of theta; inf when C gives it no variance)."""
         g = self.design(tau_s)
-        th, cov = ((self.theta, self.theta_cov) if self.theta_predict is None
-                   else (self.theta_predict, self.theta_predict_cov))
-        a = g @ th
-        var = np.einsum("ij,jk,ik->i", g, cov, g)
-        if self.theta_predict is not None:  # an unconstrained prediction that came out non-positive: the eliminated fit
-            a_el = g @ self.theta
-            low = a <= 0
-            a = np.where(low, a_el, a)
-            var = np.where(low, np.einsum("ij,jk,ik->i", g, self.theta_cov, g), var)
+        a = g @ self.theta
+        var = np.einsum("ij,jk,ik->i", g, self.theta_cov, g)
         with np.errstate(divide="ignore", invalid="ignore"):
             dof = np.where(var > 0, 2.0 * a**2 / var, np.inf)
         return a, dof
@@ -650,15 +632,6 @@ def fit_noise(
     slope_params = slope_reads(res, sensor=sensor, ci_level=ci_level, min_edf=min_edf, tau_min_s=tau_min_s,
                                tau_max_s=tau_max_s)
     proto = NoiseFit(res.channel, sensor, (), (), tuple(term_list), theta, cov, tau, a, rss, 1, tc, f0)
-    # AVAR prediction beyond the fit range (model_avar_dof): the kept terms plus every term whose AVAR does not grow
-    # with tau (Q, N, B), refitted non-negative: an eliminated B would leave the flicker floor out, a free K or R
-    # fitted to noise would be extrapolated upward
-    pred = [k for k, t in enumerate(term_list) if theta[k] > 0 or t in ("Q", "N", "B")]
-    theta_pred = np.zeros(len(term_list))
-    Lw = np.linalg.cholesky(V)
-    theta_pred[pred] = np.linalg.lstsq(np.linalg.solve(Lw, Xd[:, pred]), np.linalg.solve(Lw, a), rcond=None)[0]
-    cov_pred = np.zeros((len(term_list), len(term_list)))
-    cov_pred[np.ix_(pred, pred)] = np.linalg.pinv(_information(Xd[:, pred], V))
     outside = _outside_ranges(res, sel, proto.model_avar, check_ci)
     warns = []
     for lo_t, hi_t, rmin, rmax in outside:
@@ -686,8 +659,6 @@ def fit_noise(
         discrepancy=float(delta),
         outside_tau_ranges=outside,
         warnings=tuple(warns),
-        theta_predict=theta_pred,
-        theta_predict_cov=cov_pred,
     )
 
 
@@ -860,12 +831,6 @@ def _bound_at_null(Xd: np.ndarray, a: np.ndarray, V: np.ndarray, k: int, crit: f
         if done:
             break
     return float(hi[k])
-
-
-def _information(Xd: np.ndarray, V: np.ndarray) -> np.ndarray:
-    """GLS information X' V^-1 X of the AVAR points."""
-    Xw = np.linalg.solve(np.linalg.cholesky(V), Xd)
-    return Xw.T @ Xw
 
 
 def _active_set_covariance(info: np.ndarray, theta: np.ndarray, allowed=None) -> tuple[np.ndarray, np.ndarray]:
