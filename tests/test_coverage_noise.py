@@ -96,3 +96,7 @@ def test_small_noise_coverage_run_scores_every_printed_interval(tmp_path):
     text = bench.markdown(tabs, {"seed": 77, "trials": 9, "duration_s": 240.0, "cycles": 3, "seconds": 0,
                                  "command": "test"})
     assert "| gyro:N |" in text
+    # zero truths (accelerometer Q on the device plan): counted, with the share printed two-sided there
+    allr = tabs["term_all_reports"].set_index("family")
+    assert allr.loc["accel:Q", "n_truth_zero"] > 0 and 0.0 <= allr.loc["accel:Q", "two_sided_at_zero"] <= 1.0
+    assert "two-sided at truth = 0" in text
