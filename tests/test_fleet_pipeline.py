@@ -50,7 +50,11 @@ def fleet_archive_run(root: Path) -> None:
                                    start_time_utc=t0 + timedelta(days=7 * c), plan_kwargs={"duration_scale": 0.3}),
                       landing)
     from pipelines.definitions import build_definitions
-    from pipelines.launch import materialize_archive, open_instance, register_landed_runs
+    from pipelines.launch import (
+        materialize_archive,
+        open_instance,
+        register_landed_runs,
+    )
     from pipelines.resources import LabArchive
 
     defs = build_definitions(str(landing), str(store))
