@@ -42,8 +42,10 @@ def _write_null_archive(root: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def null_archive(tmp_path_factory) -> Path:
-    return _write_null_archive(tmp_path_factory.mktemp("null"))
+def null_archive(background_job) -> Path:
+    """The null archive the ``null_device_reports`` job wrote (the same seeded archive this module's tests wrote
+    again in process before; ``imulab diagnose`` only reads it): its tests run after that job's test waited for it."""
+    return background_job("null_device_reports") / "landing"
 
 
 #: run in a second process from the start of the session, in this order (tests/conftest.py)

@@ -3,8 +3,7 @@ one), real Dagster runs through the launch helpers, real parquet and PNG outputs
 
 from __future__ import annotations
 
-import shutil
-import tempfile
+import json
 import warnings
 from dataclasses import replace
 from datetime import datetime, timedelta, timezone
@@ -21,11 +20,6 @@ DRIFTING, STABLE = "DRF-001", "STB-002"
 DRIFT_DEGPH_PER_DAY = 3.0  # vs a turn-on repeatability of 1 deg/h: 63 deg/h over the 21 days of the series
 
 
-def _scratch_dir() -> Path:
-    shm = Path("/dev/shm")
-    return Path(tempfile.mkdtemp(prefix="imulab-fleet-", dir=shm if shm.is_dir() else None))  # tmpfs: fast fsync
-
-
 def _check_evals(instance: dg.DagsterInstance, run_id: str) -> dict:
     out = {}
     for rec in instance.get_records_for_run(run_id).records:
@@ -35,10 +29,15 @@ def _check_evals(instance: dg.DagsterInstance, run_id: str) -> dict:
     return out
 
 
-@pytest.fixture(scope="module")
-def fleet():
+#: run in a second process from the start of the session (tests/conftest.py)
+BACKGROUND_JOBS = ("fleet_archive_run",)
+
+
+def fleet_archive_run(root: Path) -> None:
+    """The fleet's archive (4 weekly rate runs of the drifting device, 3 of the stable one) and the main job on it
+    (``materialize_archive``: per-run, per-device and fleet stages) with a persistent Dagster instance in ``root /
+    "dagster_home"``; the launch summary's runs (job, Dagster run id, success) in ``root / "runs.json"``."""
     warnings.filterwarnings("ignore")
-    root = _scratch_dir()
     landing, store = root / "landing", root / "store"
     t0 = datetime(2026, 3, 2, 8, tzinfo=timezone.utc)
     devices = [(DRIFTING, replace(example_device(DRIFTING, "tactical", 5),
@@ -51,18 +50,35 @@ def fleet():
                                    start_time_utc=t0 + timedelta(days=7 * c), plan_kwargs={"duration_scale": 0.3}),
                       landing)
     from pipelines.definitions import build_definitions
-    from pipelines.launch import materialize_archive, open_instance, register_landed_runs
+    from pipelines.launch import (
+        materialize_archive,
+        open_instance,
+        register_landed_runs,
+    )
     from pipelines.resources import LabArchive
 
     defs = build_definitions(str(landing), str(store))
     with open_instance(root / "dagster_home") as inst:
         register_landed_runs(inst, LabArchive(landing_dir=str(landing)))
         summary = materialize_archive(defs, inst, record_outcomes=False)
+    (root / "runs.json").write_text(json.dumps(summary.runs))
+
+
+@pytest.fixture(scope="module")
+def fleet(background_job):
+    """The background job's store and Dagster instance (reopened here), the fleet run's check evaluations."""
+    warnings.filterwarnings("ignore")
+    from pipelines.definitions import build_definitions
+    from pipelines.launch import LaunchSummary, open_instance
+
+    root = background_job("fleet_archive_run")
+    summary = LaunchSummary(runs=[tuple(r) for r in json.loads((root / "runs.json").read_text())])
+    defs = build_definitions(str(root / "landing"), str(root / "store"))
+    with open_instance(root / "dagster_home") as inst:
         fleet_runs = [rid for job, rid, ok in summary.runs if job == "fleet_summary"]
         evals = _check_evals(inst, fleet_runs[-1])
-        yield {"root": root, "defs": defs, "store": VersionedStore(store), "summary": summary, "evals": evals,
-               "instance": inst}
-    shutil.rmtree(root, ignore_errors=True)
+        yield {"root": root, "defs": defs, "store": VersionedStore(root / "store"), "summary": summary,
+               "evals": evals, "instance": inst}
 
 
 def test_fleet_drift_stored_with_tables_and_plots(fleet):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from datetime import timedelta
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -104,22 +105,21 @@ def test_records_command(store, tmp_path):
     assert r.exit_code == 1 and "days old" in r.output
 
 
-@pytest.mark.slow
-def test_real_pipeline_records_are_used_end_to_end(tmp_path):
-    """The records the Dagster pipeline writes (rate, 24-position and static runs of one device, short plans):
-    looked up, applied to a run folder, exported to Kalibr and imucal."""
+BACKGROUND_JOBS = ("real_pipeline_store",)  # run in a second process from the start of the session (tests/conftest.py)
+
+
+def real_pipeline_store(work: Path) -> None:
+    """Rate, 24-position and static runs of one device (short plans) in ``work / "landing"``, through the Dagster
+    pipeline (per-run and per-device jobs, as ``imulab run`` launches them) into ``work / "store"``."""
     import warnings
 
-    import yaml
-
-    from assets_lib.apply.files import read_calibration_metadata
     from assets_lib.sim.simulator import simulate_run, write_run
     from pipelines.definitions import build_definitions
     from pipelines.launch import execute, open_instance, register_landed_runs
     from pipelines.resources import LabArchive
 
     warnings.filterwarnings("ignore")
-    landing, store = tmp_path / "landing", tmp_path / "store"
+    landing, store = work / "landing", work / "store"
     truth = example_device("TAC-P01", "tactical", 8)
     for plan, rid, h, kw in (("quick_rate", "pc00-rate", 0, {"plan_kwargs": {"duration_scale": 0.3}}),
                              ("quick_24_position", "pc00-pos24", 1, {"plan_kwargs": {"duration_scale": 0.3}}),
@@ -127,10 +127,23 @@ def test_real_pipeline_records_are_used_end_to_end(tmp_path):
                                                                 "plan_kwargs": {"static_duration_s": 600.0}})):
         write_run(simulate_run(truth, plan, rid, start_time_utc=T0 + timedelta(hours=h), seed=8, **kw), landing)
     defs = build_definitions(str(landing), str(store))
-    with open_instance(tmp_path / "dagster_home") as inst:
+    with open_instance(work / "dagster_home") as inst:
         register_landed_runs(inst, LabArchive(landing_dir=str(landing)))
         summary = execute(defs, inst, "calibrate_captures", "captures")
         execute(defs, inst, "calibrate_devices", "devices", summary=summary)
+
+
+@pytest.mark.slow
+def test_real_pipeline_records_are_used_end_to_end(background_job, tmp_path):
+    """The records the Dagster pipeline writes (rate, 24-position and static runs of one device, short plans; this
+    module's background job ``real_pipeline_store``): looked up, applied to a run folder, exported to Kalibr and
+    imucal."""
+    import yaml
+
+    from assets_lib.apply.files import read_calibration_metadata
+
+    work = background_job("real_pipeline_store")
+    landing, store = work / "landing", work / "store"
     r = lookup(store, "TAC-P01", T0 + timedelta(days=1), max_age_days=30)
     assert {t.group: t.run_id for t in r.calibration.terms} == {
         "gyro_scale_misalignment": "pc00-rate", "gyro_bias_g": "pc00-pos24", "accel": "pc00-pos24"}
