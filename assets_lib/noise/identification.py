@@ -59,6 +59,7 @@ a +-50 % interval, and a slope through them can be anything).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -153,6 +154,32 @@ def avar_correlation(
     return R
 
 
+@functools.lru_cache(maxsize=64)
+def _avar_transfer(tau_bytes: bytes, rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The model-free part of :func:`avar_covariance_large_n` at the taus (``tau_bytes``, float64) and rate: the log
+    frequency grid, its weights, |H_m(f)|^2 per tau and the diagonal's factor; a fit evaluates the covariance at
+    hundreds of models on the same taus, so these are computed once (read-only arrays)."""
+    tau = np.frombuffer(tau_bytes, dtype=float)
+    tau0 = 1.0 / rate_hz
+    m = np.maximum(np.rint(tau / tau0), 1.0)
+    f_lo = 1e-3 / tau.max()
+    f_hi = 0.5 * rate_hz
+    c = 8.0  # above f tau = c the sin^4 factor is replaced by its mean 3/8
+    n_grid = int(np.ceil(np.log10(f_hi / f_lo) * 200)) + 2
+    f = np.geomspace(f_lo, f_hi, n_grid)
+    lnf = np.log(f)
+    df = np.gradient(lnf) * f  # trapezoid-like weights on the log grid
+    u = np.pi * np.outer(f, tau)  # (grid, taus)
+    fast = np.outer(f, tau) > c
+    s4 = np.where(fast, 3.0 / 8.0, np.sin(u) ** 4)
+    G = 4.0 * s4 / (np.outer(np.sin(np.pi * f * tau0), m)) ** 2
+    # diagonal: the mean of sin^8 is 35/128, not (3/8)^2
+    G_diag = G * np.where(fast, 35.0 / 18.0, 1.0)
+    for arr in (f, df, G, G_diag):
+        arr.flags.writeable = False
+    return f, df, G, G_diag
+
+
 def avar_covariance_large_n(
     tau_s: np.ndarray, n_terms: np.ndarray, theta: Mapping[str, float], rate_hz: float, tc_s: float | None = None
 ) -> np.ndarray:
@@ -167,23 +194,11 @@ def avar_covariance_large_n(
     """
     tau = np.asarray(tau_s, dtype=float)
     tau0 = 1.0 / rate_hz
-    m = np.maximum(np.rint(tau / tau0), 1.0)
-    f_lo = 1e-3 / tau.max()
-    f_hi = 0.5 * rate_hz
-    c = 8.0  # above f tau = c the sin^4 factor is replaced by its mean 3/8
-    n_grid = int(np.ceil(np.log10(f_hi / f_lo) * 200)) + 2
-    f = np.geomspace(f_lo, f_hi, n_grid)
-    lnf = np.log(f)
-    df = np.gradient(lnf) * f  # trapezoid-like weights on the log grid
+    f, df, G, G_diag = _avar_transfer(tau.tobytes(), float(rate_hz))
     S = _psd_two_sided(f, theta, tau0, tc_s)
-    u = np.pi * np.outer(f, tau)  # (grid, taus)
-    fast = np.outer(f, tau) > c
-    s4 = np.where(fast, 3.0 / 8.0, np.sin(u) ** 4)
-    G = 4.0 * s4 / (np.outer(np.sin(np.pi * f * tau0), m)) ** 2
     Wv = (S**2 * df)[:, None]
     I = (G * Wv).T @ G
-    # diagonal: the mean of sin^8 is 35/128, not (3/8)^2
-    diag = np.einsum("gj,gj->j", G * Wv, G * np.where(fast, 35.0 / 18.0, 1.0))
+    diag = np.einsum("gj,gj->j", G * Wv, G_diag)
     I[np.diag_indices_from(I)] = diag
     n = np.asarray(n_terms, dtype=float)
     nmin = np.minimum.outer(n, n)
