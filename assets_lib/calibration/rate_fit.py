@@ -38,6 +38,7 @@ from assets_lib.calibration.fit_core import (
     LinearFit,
     fit_linear,
     flicker_b,
+    flicker_b_dof,
     flicker_covariance,
     flicker_gls,
     flicker_prior_tau2,
@@ -447,7 +448,8 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=optional, rel_tol=rel_tol, pre_excluded=pre_i,
                      outlier_test=outlier_test, alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(om[:, i], rate_rows), nuisance=nuisance,
-                     times=tm, flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")))
+                     times=tm, flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")),
+                     flicker_tau2_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
     ks = names.index("scale_factor")
     K, sK = fit.get("scale_factor")
     b, sb = fit.get("bias")
