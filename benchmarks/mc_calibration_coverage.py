@@ -438,7 +438,7 @@ def rate_means(p: pd.DataFrame) -> dict:
     """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab would tabulate it: table rate about the
     axis, plateau mean and sem of that axis, plateau start/end times and the run's 1/f level B (segmentation's
     ``*_flicker_b``) for the correlated-noise model."""
-    from assets_lib.calibration.fit_core import flicker_b
+    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof
     from assets_lib.calibration.means_fit import fit_rate_means
 
     om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
@@ -451,7 +451,8 @@ def rate_means(p: pd.DataFrame) -> dict:
                 times = (p.loc[rows, "t_start_s"].to_numpy(float), p.loc[rows, "t_end_s"].to_numpy(float))
             out[a] = fit_rate_means((om - ea)[rows, i], p.loc[rows, f"gyro_{a}_radps_mean"].to_numpy(float),
                                     p.loc[rows, f"gyro_{a}_radps_sem"].to_numpy(float), rate_unit="rad/s",
-                                    output_unit="rad/s", times=times, flicker_b=flicker_b(p, f"gyro_{a}_radps"))
+                                    output_unit="rad/s", times=times, flicker_b=flicker_b(p, f"gyro_{a}_radps"),
+                                    flicker_b_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
     return out
 
 
