@@ -64,9 +64,9 @@ Covariance (``cov_policy``)
     accelerometer bias 0.988 -> 0.964; tumble K0 0.967 -> 0.952, K3 0.975 -> 0.957 over 458 tumble runs). The
     chi-square test still guards the model: at p < 0.001 (scatter the noise model cannot explain) the fit falls back
     to "pooled" (Birge-inflated, Student-t) and warns. Still wide on the 6-position plan (k2 0.976, z sd 0.89;
-    gyro g-sensitivity 0.975): there the covariance itself, not the factor, is too wide: where B's dof is small
-    (tactical, z sd ~0.8) the posterior mean of tau^2 exceeds the estimate (about nu / (nu - 2)), and where B was not
-    detected (pooled policy) tau^2 sits at its sem bound.
+    gyro g-sensitivity 0.975): there the covariance itself, not the factor, is too wide (z sd 0.76-0.83 for the
+    tactical grade's integrated fits). Not verified why; candidates: where B's dof is small the posterior mean of
+    tau^2 exceeds the estimate (about nu / (nu - 2)); where B was not detected (pooled) tau^2 sits at its sem bound.
 """
 
 from __future__ import annotations
