@@ -286,7 +286,7 @@ def test_uncertain_flicker_level_is_integrated_out():
     L = np.linalg.cholesky(flicker_covariance(sem, t_mid, t_len, tau2))
     beta = np.array([0.05, 1.001, 1e-4])
     rng = np.random.default_rng(11)
-    z_exact, z_marg = [], []
+    z_exact, z_marg, covered = [], [], []
     for _ in range(400):
         y = X @ beta + L @ rng.standard_normal(8)
         t_hat = tau2 * rng.chisquare(nu) / nu
@@ -294,8 +294,19 @@ def test_uncertain_flicker_level_is_integrated_out():
             fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
                              flicker_tau2=t_hat, flicker_tau2_dof=dof)
             z.append((fit.value[0] - beta[0]) / np.sqrt(fit.cov[0, 0]))
+        if fit.cov_policy == "marginal":  # the printed intervals: no Student-t on top of the integrated level
+            assert fit.scale == 1.0 and fit.k95 == pytest.approx(1.959964)
+            covered.append(np.abs(fit.value - beta) <= fit.k95 * fit.stderr)
     assert np.std(z_exact) > 1.08 and np.mean(np.abs(z_exact) < 1.96) < np.mean(np.abs(z_marg) < 1.96)
     assert 0.92 < np.std(z_marg) < 1.08 and 0.91 < np.mean(np.abs(z_marg) < 1.96) < 0.98
+    # every coefficient's printed 95 % interval (with t(dof + 4) on top, 5 residual dof: 0.97-0.99)
+    assert len(covered) > 390 and np.all((0.92 < np.mean(covered, axis=0)) & (np.mean(covered, axis=0) < 0.975))
+
+    # scatter the noise model cannot explain (chi-square p < 0.001): Birge-inflated pooled policy, with a warning
+    y = X @ beta + 30.0 * L @ rng.standard_normal(8)
+    fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                     flicker_tau2=tau2, flicker_tau2_dof=nu)
+    assert fit.chi2_pvalue < 1e-3 and fit.cov_policy == "pooled" and fit.scale > 2 and fit.warnings
 
     b = 2e-4
     def table(n_plateaus, n_samples):

@@ -51,6 +51,22 @@ Covariance (``cov_policy``)
     the two": it over-covers (~96.5 % at nu = 17) when the sems are right. A chi-square consistency test
     (p < 0.001) adds a warning naming the likely causes ([COX2002]). Without sems, ordinary
     least squares with phi = RSS/nu and Student-t(nu) intervals ("residual").
+
+    "marginal": when the run's 1/f level is integrated out (``flicker_tau2`` with ``flicker_tau2_dof``,
+    :func:`flicker_gls`), the GLS covariance is already the posterior covariance over the uncertain noise level:
+    the law of total variance carries tau^2's spread, and the plateau residuals entered that posterior through the
+    REML likelihood. Scaling it again by phi and widening by Student-t(nu_0 + nu) counts the same uncertainty twice
+    (the t is the marginal of a normal over an unknown variance, [GELMAN2013] sec. 3.2; here the variance was
+    already marginalised) and uses the residuals twice. So phi = 1 and the normal factor 1.96; the sems' white level
+    comes from thousands of samples per plateau (segmentation's Allan fit) and is not the uncertain part. With
+    both, the few-dof fits over-covered with z sd ~1 (coverage benchmark, position runs of 556 trials, seed 8821:
+    6-position accelerometer k2 0.991 -> 0.976, scale factor 0.985 -> 0.964, misalignment 0.983 -> 0.967; 12-position
+    accelerometer bias 0.988 -> 0.964; tumble K0 0.967 -> 0.952, K3 0.975 -> 0.957 over 458 tumble runs). The
+    chi-square test still guards the model: at p < 0.001 (scatter the noise model cannot explain) the fit falls back
+    to "pooled" (Birge-inflated, Student-t) and warns. Still wide on the 6-position plan (k2 0.976, z sd 0.89;
+    gyro g-sensitivity 0.975): there the covariance itself, not the factor, is too wide (z sd 0.76-0.83 for the
+    tactical grade's integrated fits). Not verified why; candidates: where B's dof is small the posterior mean of
+    tau^2 exceeds the estimate (about nu / (nu - 2)); where B was not detected (pooled) tau^2 sits at its sem bound.
 """
 
 from __future__ import annotations
@@ -117,6 +133,8 @@ class LinearFit:
         """Coverage factor of a 95 % interval: Student-t with the variance factor's degrees of freedom."""
         if self.cov_policy == "pooled":
             return float(stats.t.ppf(0.975, self.dof + self.sem_prior_dof))
+        if self.cov_policy == "marginal":
+            return float(stats.norm.ppf(0.975))
         if self.cov_policy == "residual" and self.dof > 0:
             return float(stats.t.ppf(0.975, self.dof))
         return float(stats.norm.ppf(0.975))
@@ -386,6 +404,7 @@ def fit_linear(
     ident, obs, idx, w, x, C0, h = sol.ident, sol.observable, sol.rows, sol.weights, sol.x, sol.cov_unscaled, sol.leverage
     chi2, k, dof = sol.chi2, sol.n_observable, sol.dof
     tau2 = 0.0
+    marginal = False  # the 1/f level integrated out (flicker_gls with prior_dof): the noise level's uncertainty is in C
     C_common = None  # the run mean's 1/f wander on the constant column (not scaled by the residual chi-square)
     # REML needs a few residual dof; a 1/f level given by the run's Allan analysis applies to any schedule
     # (a 6-position plan has 2 dof: without it the biases lost the 1/f wander, coverage 0.84, z sd 2.0)
@@ -409,6 +428,7 @@ def fit_linear(
                                                prior_dof=flicker_tau2_dof)
             if tau2 > 0:
                 x, C0, chi2 = gx, gC, gchi2
+                marginal = _integrates_tau2(flicker_tau2, flicker_tau2_dof)
                 # Sigma's constant part c 11^T (c = 2 ln2 tau^2, the run mean's wander) moves only the constant
                 # column's estimate (1 lies in the design's column space: Rao's structure [RAO1967]), by exactly c; the
                 # residuals, contrasts between plateaus, carry no information about it, so the scatter's Birge
@@ -425,7 +445,9 @@ def fit_linear(
         )
     # covariance policy (module docstring): sems pooled with the residual chi-square
     pval = float(stats.chi2.sf(chi2, dof)) if (k and dof > 0 and sig is not None) else float("nan")
-    if k and sig is not None:
+    if k and sig is not None and marginal and not (np.isfinite(pval) and pval < 1e-3):
+        scale, policy = 1.0, "marginal"  # no variance factor, no Student-t on top of the integrated level (docstring)
+    elif k and sig is not None:
         scale, policy = (sem_prior_dof + chi2) / (sem_prior_dof + dof), "pooled"
         if np.isfinite(pval) and pval < 1e-3:
             warnings.append(
@@ -606,7 +628,7 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
             return np.inf
         return 2 * np.sum(np.log(np.diag(L))) + 2 * np.sum(np.log(np.abs(np.diag(R)))) + float(r @ r)
 
-    if tau2 is not None and tau2 > 0 and prior_dof is not None and np.isfinite(prior_dof) and prior_dof > 0:
+    if _integrates_tau2(tau2, prior_dof):
         return _flicker_marginal(parts, nll, float(tau2), float(prior_dof), scale, p)
     if tau2 is not None:
         if tau2 <= 0:
@@ -625,6 +647,11 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
         return 0.0, None, None, None
     Rinv = np.linalg.solve(R, np.eye(p))
     return tau2, x, Rinv @ Rinv.T, float(r @ r)
+
+
+def _integrates_tau2(tau2: float | None, prior_dof: float | None) -> bool:
+    """Whether :func:`flicker_gls` integrates tau^2 out (an Allan estimate with its degrees of freedom)."""
+    return bool(tau2 is not None and tau2 > 0 and prior_dof is not None and np.isfinite(prior_dof) and prior_dof > 0)
 
 
 #: log grid of tau^2 / tau2_hat for the marginalisation over the 1/f level (:func:`flicker_gls`)
