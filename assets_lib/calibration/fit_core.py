@@ -118,7 +118,7 @@ class LinearFit:
     chi2: float  # weighted residual sum of squares (RSS when unweighted)
     chi2_pvalue: float
     scale: float  # variance factor applied to (A^T W A)^-1
-    cov_policy: str  # 'pooled' (sems + scatter) | 'residual' (no sems) | 'none'
+    cov_policy: str  # 'pooled' (sems + scatter) | 'marginal' (1/f level integrated) | 'residual' (no sems) | 'none'
     outlier_critical: float  # last Bonferroni critical value used (NaN if no test)
     warnings: tuple[str, ...] = field(default=())
     sem_prior_dof: float = 0.0
