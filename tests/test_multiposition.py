@@ -5,11 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy import stats
-
-from assets_lib.calibration.fit_report import COEFFICIENT_COLUMNS
-from assets_lib.calibration.means_fit import fit_tumble_means
-from assets_lib.calibration.multiposition import fit_accel_multiposition, fit_gyro_static
-from assets_lib.calibration.rate_fit import fit_gyro_rate
 from seed001_data import PRINTED_HALF_UNIT, TUMBLE_PUBLISHED, tumble_table
 from synth_plateaus import (
     AX,
@@ -23,6 +18,14 @@ from synth_plateaus import (
     rate_steps,
     static_steps,
 )
+
+from assets_lib.calibration.fit_report import COEFFICIENT_COLUMNS
+from assets_lib.calibration.means_fit import fit_tumble_means
+from assets_lib.calibration.multiposition import (
+    fit_accel_multiposition,
+    fit_gyro_static,
+)
+from assets_lib.calibration.rate_fit import fit_gyro_rate
 
 Z_FAMILY = 4.0  # |z| bound for ~20-40 simultaneous checks in one fixed-seed trial
 G0 = 9.80665
@@ -232,7 +235,12 @@ def test_run_mean_wander_is_not_scaled_by_the_residual_scatter():
     """Sigma's constant part 2 ln2 tau^2 11^T (the run mean's 1/f wander) moves only the bias, by exactly that
     variance, and the residuals (contrasts) say nothing about it: the Birge scaling applies to the rest. Bias
     z-scores of a 6-position-like design with the 1/f level given stay standard normal."""
-    from assets_lib.calibration.fit_core import FLICKER_WHITE, fit_linear, flicker_covariance, flicker_gls
+    from assets_lib.calibration.fit_core import (
+        FLICKER_WHITE,
+        fit_linear,
+        flicker_covariance,
+        flicker_gls,
+    )
 
     X, t_mid, t_len, sem = _flicker_design()
     tau2 = (2e-4) ** 2 / np.pi
@@ -258,7 +266,12 @@ def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
     """B = 0 from the run's Allan fit means "not seen within the plateaus", not "absent": with too few residual
     dof for REML (here 2: a 6-position-like design) tau^2 is taken at its bound sem^2 / (2 ln2), so the bias keeps
     a run-mean wander; with enough dof REML estimates it from the contrasts."""
-    from assets_lib.calibration.fit_core import FLICKER_UNDETECTED, FLICKER_WHITE, fit_linear, flicker_prior_tau2
+    from assets_lib.calibration.fit_core import (
+        FLICKER_UNDETECTED,
+        FLICKER_WHITE,
+        fit_linear,
+        flicker_prior_tau2,
+    )
 
     assert flicker_prior_tau2(0.0) == FLICKER_UNDETECTED and flicker_prior_tau2(None) is None
     assert flicker_prior_tau2(2e-4) == pytest.approx(4e-8 / np.pi)
@@ -271,6 +284,52 @@ def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
     assert fit.cov[0, 0] >= FLICKER_WHITE * fit.flicker_tau2
 
 
+def test_undetected_flicker_level_integrated_with_its_censored_law():
+    """B = 0 from the Allan fit is the censored event "F_hat <= 0" of its sampling law (FlickerLaw): the
+    likelihood falls with tau^2, and a 5-plateau fit (2 residual dof) integrates tau^2 out with it ('marginal')
+    instead of taking the sem bound; where the true floor lies far below the white noise (a navigation gyro) the
+    bias z-scores are less over-covered than with the bound and the intervals still cover."""
+    import pandas as pd
+
+    from assets_lib.calibration.fit_core import (
+        FLICKER_UNDETECTED,
+        FLICKER_WHITE,
+        fit_linear,
+        flicker_covariance,
+        flicker_law,
+    )
+
+    X, t_mid, t_len, _ = _flicker_design()
+    X, t_mid, t_len = X[:5], t_mid[:5], t_len[:5]
+    n_samples = 2000
+    sem = np.full(5, 150e-6 * 9.8 / np.sqrt(n_samples / 100.0))
+    table = pd.DataFrame({"accel_x_mps2_sem": sem, "accel_x_mps2_flicker_b": 0.0, "n_samples": n_samples,
+                          "t_start_s": t_mid - 10.0, "t_end_s": t_mid + 10.0 - 0.01})
+    law = flicker_law(table, "accel_x_mps2")
+    r = law.resolution_tau2
+    assert law.f_hat == 0 and r > 0
+    ll = [law.loglik(t) for t in r * np.array([1e-3, 0.3, 1.0, 3.0, 10.0])]
+    assert np.all(np.diff(ll) < 0) and ll[0] > np.log(0.4) and ll[-1] < np.log(0.01)
+    assert flicker_law(table.assign(accel_x_mps2_flicker_b=np.nan), "accel_x_mps2") is None
+
+    tau2 = 0.05 * r  # a floor well below what the run resolves
+    L = np.linalg.cholesky(flicker_covariance(sem, t_mid, t_len, tau2))
+    beta = np.array([0.05, 1.001, 1e-4])
+    rng = np.random.default_rng(3)
+    z_law, z_bound = [], []
+    for _ in range(100):
+        y = X @ beta + L @ rng.standard_normal(5)
+        for dof, z in ((law, z_law), (None, z_bound)):
+            fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                             flicker_tau2=FLICKER_UNDETECTED, flicker_tau2_dof=dof)
+            z.append((fit.value[0] - beta[0]) / np.sqrt(fit.cov[0, 0]))
+        assert fit.cov_policy == "pooled"  # the bound (no law) keeps the old policy
+    fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                     flicker_tau2=FLICKER_UNDETECTED, flicker_tau2_dof=law)
+    assert fit.dof == 2 and fit.cov_policy == "marginal" and 0 < fit.flicker_tau2 < np.median(sem**2) / FLICKER_WHITE
+    assert np.std(z_law) > 1.1 * np.std(z_bound) and np.mean(np.abs(z_law) < 1.96) > 0.93
+
+
 def test_uncertain_flicker_level_is_integrated_out():
     """A 1/f level read by an Allan fit is an estimate, tau2_hat ~ tau2 chi^2_nu / nu. Taken as exact (nu = 4) the
     bias z-scores are too wide (an underestimated tau^2 gives large z); given its degrees of freedom the fit
@@ -278,7 +337,12 @@ def test_uncertain_flicker_level_is_integrated_out():
     and the length of the plateaus."""
     import pandas as pd
 
-    from assets_lib.calibration.fit_core import FLICKER_WHITE, fit_linear, flicker_b_dof, flicker_covariance
+    from assets_lib.calibration.fit_core import (
+        FLICKER_WHITE,
+        fit_linear,
+        flicker_b_dof,
+        flicker_covariance,
+    )
 
     X, t_mid, t_len, _ = _flicker_design()
     tau2, nu = (2e-4) ** 2 / np.pi, 4.0

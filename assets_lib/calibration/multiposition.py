@@ -35,6 +35,7 @@ from assets_lib.calibration.fit_core import (
     fit_linear,
     flicker_b,
     flicker_b_dof,
+    flicker_law,
     flicker_prior_tau2,
 )
 from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
@@ -220,7 +221,7 @@ def fit_accel_multiposition(
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha, nuisance=np.array(nuisance),
                          times=_times(p) if correlated_noise else None,
                          flicker_tau2=None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])),
-                         flicker_tau2_dof=flicker_b_dof(p, f"accel_{a}_mps2") if use_b_dof else None)
+                         flicker_tau2_dof=_b_law(p, f"accel_{a}_mps2") if use_b_dof else None)
         ks = names.index("scale_factor")
         mis = {}
         for j in others:
@@ -340,7 +341,7 @@ def fit_gyro_static(
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,
                          times=_times(p) if correlated_noise else None,
                          flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")),
-                         flicker_tau2_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
+                         flicker_tau2_dof=_b_law(p, f"gyro_{a}_radps"))
         if np.any(Cm):
             # x = P z with z = y - W m: Cov += P W Cm W^T P^T (rate-fit uncertainty of the earth-rate projection)
             obs = np.flatnonzero(fit.observable)
@@ -355,3 +356,12 @@ def fit_gyro_static(
         gs = {AXES[j]: _vs(fit, f"g_sensitivity_{AXES[j]}", "rad/s/(m/s^2)") for j in range(3)} if use_g else {}
         out.append(GyroStaticAxisFit(a, fit, _vs(fit, "bias", "rad/s"), gs, src, fit.n_used, _n_samples(p, fit.used)))
     return GyroStaticFit(dev, run, tuple(out), p)
+
+
+def _b_law(p, channel: str):
+    """What the fits know of the run's 1/f level beyond B itself: its degrees of freedom when B was detected
+    (:func:`flicker_b_dof`), the censored sampling law of the Allan estimate when it was not (:func:`flicker_law`)."""
+    b = flicker_b(p, channel)
+    if b is not None and b == 0:
+        return flicker_law(p, channel)
+    return flicker_b_dof(p, channel)
