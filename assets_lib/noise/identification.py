@@ -607,6 +607,9 @@ def fit_noise(
     # it charged the Markov term's AVAR to B: B z mean +1.1 / +1.8, gyro B coverage 0.46, in
     # benchmarks/coverage_noise.py)
     theta, rss, cov, sd_all, bound_theta, (lo_prof, hi_prof, centre) = _significant_terms(Xd, a, V, z2, cov_at)
+    if markov and profile is not None:
+        lo_prof, hi_prof, bound_theta = _markov_nuisance(Xd, a, V, z2, lo_prof, hi_prof, bound_theta, fine, chis,
+                                                         design, f0, term_list)
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
@@ -749,6 +752,32 @@ def _markov_joint_profile(fine, design, f0, a, V, crit, k, sensor, ci_level, th,
     val = _theta_to_param("M", th, tc)
     lo, hi = min(min(los), val), max(max(his), val)
     return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th) if th > 0 else math.nan)
+
+
+def _markov_nuisance(Xd, a, V, z2, lo_p, hi_p, bounds, fine, chis, design, f0, term_list):
+    """The long-tau terms' (B, K, R) profile sets in a Markov fit with T_c free, not held at its profile point
+    (T_c is a nuisance parameter of their likelihood too; the Markov hump trades places with B and K when T_c is
+    long): {theta_k : min over T_c and every other term >= 0 of the GLS chi2 <= chi2_min + z2^2} ([VENZON1988]),
+    the union over the T_c grid (every 4th point of the fine grid inside the T_c set, the set's ends) of each
+    T_c's profile interval cut at the global minimum. A term whose set reaches zero at some T_c is a bound (its
+    set's upper end). Held at the profile's T_c, gyro B covered 0.83 (z sd 1.34): where the Markov term was not
+    identified its hump was charged to B (benchmarks/coverage_noise.py)."""
+    long_k = [k for k in range(Xd.shape[1]) if term_list[k] in _LONG_TAU_TERMS]
+    if not long_k:
+        return lo_p, hi_p, bounds
+    cut = float(np.min(chis)) + z2 * z2
+    lo_p, hi_p, bounds = lo_p.copy(), hi_p.copy(), dict(bounds)
+    inside = np.flatnonzero(chis <= cut)
+    pick = np.unique(np.concatenate([inside[::4], inside[[0, -1]]]))
+    for i in pick:
+        lo_t, hi_t, _ = _profile_limits(design(fine[i], f0), a, V, cut - float(chis[i]), only=long_k)
+        for k in long_k:
+            lo_p[k] = min(lo_p[k], lo_t[k])
+            hi_p[k] = max(hi_p[k], hi_t[k])
+    for k in long_k:
+        if k in bounds or lo_p[k] <= 0:
+            bounds[k] = max(bounds.get(k, 0.0), float(hi_p[k]))
+    return lo_p, hi_p, bounds
 
 
 def _markov_davies_p(chi0: float, chis: np.ndarray, disp: float = 1.0) -> float:
