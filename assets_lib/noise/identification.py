@@ -32,7 +32,9 @@ small-f form, which overstated the variance of Q-dominated short-tau points 1.3-
 comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
 interval is the joint profile-likelihood set of (q_c, T_c) projected on q_c (every other term and T_c free); whether
 the record holds a Markov term at all is tested with the supremum of the likelihood-ratio gain over the T_c grid
-([DAVIES1987]: T_c exists only under the alternative), else q_c and T_c are bounds. benchmarks/coverage_noise.py measures the coverage of
+([DAVIES1987]: T_c exists only under the alternative), else q_c and T_c are bounds. T_c is a nuisance parameter of
+the long-tau terms too (a long-T_c hump trades places with B and K): in a Markov fit their profile sets are the
+union over the T_c set of each T_c's profile interval, cut at the global minimum. benchmarks/coverage_noise.py measures the coverage of
 every printed interval.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
