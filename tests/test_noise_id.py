@@ -297,3 +297,17 @@ def test_long_tau_term_sets_take_the_union_over_the_markov_tc_set():
         if i % 4 == inside[0] % 4:  # the grid points the union evaluates
             assert lo_t[1] >= lo_u[1] * (1 - 1e-9)
     assert (1 in bounds) == (lo_u[1] <= 0)
+
+
+def test_markov_fit_reads_n_with_the_long_tau_terms_free():
+    """A Markov fit whose elimination drops B (the Markov hump covers the long taus) would charge B's flat share of
+    the short-tau AVAR to N ([IEEE952] C.23: B^2 2 ln2 / pi at every tau); N is printed from the fit with B, K, R and
+    the Markov term free and non-negative, exact on the model curve where the eliminated fit's N is not."""
+    n_w, b, th_m, tc = 1.47e-3, 4e-4, 4e-5, 1.4
+    res = _model_result(AllanParams(n=n_w, b=b), n=120_000, extra=lambda tau: th_m * ni.markov_avar_unit(tau, tc),
+                        channel="accel_x")
+    fit = ni.fit_noise(res, markov=True)
+    assert fit.parameter("B").is_upper_bound and fit.theta[fit.terms.index("B")] == 0.0  # dropped
+    assert math.sqrt(fit.theta[fit.terms.index("N")]) / n_w - 1 > 2e-4  # the eliminated fit's N carries B
+    assert fit.parameter("N").value == pytest.approx(n_w, rel=2e-5)
+    assert fit.parameter("N").ci_lo < n_w < fit.parameter("N").ci_hi

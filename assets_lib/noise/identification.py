@@ -612,6 +612,15 @@ def fit_noise(
     if markov and profile is not None:
         lo_prof, hi_prof, bound_theta = _markov_nuisance(Xd, a, V, z2, lo_prof, hi_prof, bound_theta, fine, chis,
                                                          design, f0, term_list)
+    short_fit = short_sd = None
+    if markov:
+        # Q and N in a Markov fit: the fit with the long-tau terms free, not the eliminated one (see below)
+        free = [j for j in range(len(term_list)) if term_list[j] != "Q" or theta[j] > 0]
+        short_fit = np.zeros(len(term_list))
+        short_fit[free] = _nn_gls(Xd[:, free], a, V)[0]
+        Lc = np.linalg.cholesky(V)
+        Xc = np.linalg.solve(Lc, Xd)
+        short_sd = _active_set_covariance(Xc.T @ Xc, short_fit)[1]
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
@@ -642,6 +651,13 @@ def fit_noise(
             lo, hi = min(float(lo_prof[k]), th), max(float(hi_prof[k]), th)
             se = _theta_to_param(t, th, tc) * ((hi - lo) / (2.0 * z2)) / (2.0 * th)
         else:
+            if short_fit is not None and short_fit[k] > 0:
+                # a Markov fit's elimination drops B where the Markov hump covers the long taus, and then charges
+                # B's flat share of the short-tau AVAR to N with no uncertainty (accel N z sd 1.17, consumer 1.29,
+                # benchmarks/coverage_noise.py): N and Q are read from the fit with B, K, R and the Markov term free
+                # and non-negative (Q held at zero where the elimination dropped it: a free Q pulls N down, as in
+                # _significant_terms) and their Wald deviations from its active set
+                th, sd = float(short_fit[k]), float(short_sd[k])
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
