@@ -102,9 +102,10 @@ re-searched at every weight iteration (it is locked after the first, data-weight
 -> +0.16). In the cells (true T_c x theta_M / N^2) where >= 90 % of the channels identify the term, z_q is +0.09 to
 +0.22 (5 cells; true T_c <= 3 s: ln(q / truth) +2.0 % accel / +1.2 % gyro, the gyro's from T_c read 3-4 % low);
 in 5 of the 6 cells where < 50 % do, z_q is +0.49 to +2.98: the mean z is mostly the selection the B, K paragraph
-below describes (markov_q is printed two-sided only when the record identifies it). Not fixed: accel N in
-the Markov fit (consumer 0.851, z sd 1.29; its spread grows with the Markov amplitude: sd 1.45 at theta_M / N^2 >
-10; T_c as an extra column of N's Wald covariance did not change it).
+below describes (markov_q is printed two-sided only when the record identifies it). Q and N in the Markov fit are
+read from the fit with B, K, R and the Markov term free (the elimination dropped B under the Markov hump and charged
+its flat short-tau share to N): accel:N:markov_fit 0.891 (z sd 1.17) -> 0.917 (1.11), consumer 0.851 (1.29) ->
+0.886 (1.20); still below target (T_c as an extra column of N's Wald covariance did not change it).
 Which terms are bounds is the fit's decision (``assets_lib.noise.identification``): a term whose profile-likelihood
 interval, every other term free, reaches zero is not identified by the record (collinear B, K and R at the
 long-tau end of a short record) and is printed as an upper bound, tested at its own AVAR covariance. Not scored (statistics without an interval): ``sin_freq`` (a grid-search value
