@@ -32,7 +32,9 @@ small-f form, which overstated the variance of Q-dominated short-tau points 1.3-
 comes from a profile GLS chi2 on a fine grid; its profile set is printed as markov_tc's interval and markov_q's
 interval is the joint profile-likelihood set of (q_c, T_c) projected on q_c (every other term and T_c free); whether
 the record holds a Markov term at all is tested with the supremum of the likelihood-ratio gain over the T_c grid
-([DAVIES1987]: T_c exists only under the alternative), else q_c and T_c are bounds. benchmarks/coverage_noise.py measures the coverage of
+([DAVIES1987]: T_c exists only under the alternative), else q_c and T_c are bounds. T_c is a nuisance parameter of
+the long-tau terms too (a long-T_c hump trades places with B and K): in a Markov fit their profile sets are the
+union over the T_c set of each T_c's profile interval, cut at the global minimum. benchmarks/coverage_noise.py measures the coverage of
 every printed interval.
 The classic slope reads (N at tau = 1 s on the -1/2 line, K at tau = 3 s on the +1/2 line, B = flat minimum /
 0.664, Q at tau = sqrt(3) s, R at tau = sqrt(2) s) are given beside the fit (method 'slope'); they are biased
@@ -607,6 +609,18 @@ def fit_noise(
     # it charged the Markov term's AVAR to B: B z mean +1.1 / +1.8, gyro B coverage 0.46, in
     # benchmarks/coverage_noise.py)
     theta, rss, cov, sd_all, bound_theta, (lo_prof, hi_prof, centre) = _significant_terms(Xd, a, V, z2, cov_at)
+    if markov and profile is not None:
+        lo_prof, hi_prof, bound_theta = _markov_nuisance(Xd, a, V, z2, lo_prof, hi_prof, bound_theta, fine, chis,
+                                                         design, f0, term_list)
+    short_fit = short_sd = None
+    if markov:
+        # Q and N in a Markov fit: the fit with the long-tau terms free, not the eliminated one (see below)
+        free = [j for j in range(len(term_list)) if term_list[j] != "Q" or theta[j] > 0]
+        short_fit = np.zeros(len(term_list))
+        short_fit[free] = _nn_gls(Xd[:, free], a, V)[0]
+        Lc = np.linalg.cholesky(V)
+        Xc = np.linalg.solve(Lc, Xd)
+        short_sd = _active_set_covariance(Xc.T @ Xc, short_fit)[1]
     params, slope_params = [], []
     for k, t in enumerate(term_list):
         th, sd = float(theta[k]), float(sd_all[k])
@@ -637,6 +651,13 @@ def fit_noise(
             lo, hi = min(float(lo_prof[k]), th), max(float(hi_prof[k]), th)
             se = _theta_to_param(t, th, tc) * ((hi - lo) / (2.0 * z2)) / (2.0 * th)
         else:
+            if short_fit is not None and short_fit[k] > 0:
+                # a Markov fit's elimination drops B where the Markov hump covers the long taus, and then charges
+                # B's flat share of the short-tau AVAR to N with no uncertainty (accel N z sd 1.17, consumer 1.29,
+                # benchmarks/coverage_noise.py): N and Q are read from the fit with B, K, R and the Markov term free
+                # and non-negative (Q held at zero where the elimination dropped it: a free Q pulls N down, as in
+                # _significant_terms) and their Wald deviations from its active set
+                th, sd = float(short_fit[k]), float(short_sd[k])
             nu = 2.0 * th**2 / sd**2  # Satterthwaite: theta_hat ~ theta chi2_nu / nu
             lo = nu * th / stats.chi2.ppf(0.5 + ci_level / 2.0, nu)
             hi = nu * th / stats.chi2.ppf(0.5 - ci_level / 2.0, nu)
@@ -749,6 +770,32 @@ def _markov_joint_profile(fine, design, f0, a, V, crit, k, sensor, ci_level, th,
     val = _theta_to_param("M", th, tc)
     lo, hi = min(min(los), val), max(max(his), val)
     return _param("markov_q", val, lo, hi, sensor, "fit", False, ci_level, val * sd / (2.0 * th) if th > 0 else math.nan)
+
+
+def _markov_nuisance(Xd, a, V, z2, lo_p, hi_p, bounds, fine, chis, design, f0, term_list):
+    """The long-tau terms' (B, K, R) profile sets in a Markov fit with T_c free, not held at its profile point
+    (T_c is a nuisance parameter of their likelihood too; the Markov hump trades places with B and K when T_c is
+    long): {theta_k : min over T_c and every other term >= 0 of the GLS chi2 <= chi2_min + z2^2} ([VENZON1988]),
+    the union over the T_c grid (every 4th point of the fine grid inside the T_c set, the set's ends) of each
+    T_c's profile interval cut at the global minimum. A term whose set reaches zero at some T_c is a bound (its
+    set's upper end). Held at the profile's T_c, gyro B covered 0.83 (z sd 1.34): where the Markov term was not
+    identified its hump was charged to B (benchmarks/coverage_noise.py)."""
+    long_k = [k for k in range(Xd.shape[1]) if term_list[k] in _LONG_TAU_TERMS]
+    if not long_k:
+        return lo_p, hi_p, bounds
+    cut = float(np.min(chis)) + z2 * z2
+    lo_p, hi_p, bounds = lo_p.copy(), hi_p.copy(), dict(bounds)
+    inside = np.flatnonzero(chis <= cut)
+    pick = np.unique(np.concatenate([inside[::4], inside[[0, -1]]]))
+    for i in pick:
+        lo_t, hi_t, _ = _profile_limits(design(fine[i], f0), a, V, cut - float(chis[i]), only=long_k)
+        for k in long_k:
+            lo_p[k] = min(lo_p[k], lo_t[k])
+            hi_p[k] = max(hi_p[k], hi_t[k])
+    for k in long_k:
+        if k in bounds or lo_p[k] <= 0:
+            bounds[k] = max(bounds.get(k, 0.0), float(hi_p[k]))
+    return lo_p, hi_p, bounds
 
 
 def _markov_davies_p(chi0: float, chis: np.ndarray, disp: float = 1.0) -> float:
