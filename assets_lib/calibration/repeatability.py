@@ -84,10 +84,12 @@ def mls_difference_interval(s1: float, nu1: float, s2: float, nu2: float, confid
 
 
 def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95,
-                  stderr_dofs=None) -> Repeatability:
+                  stderr_dofs=None, stderr_mean_dof: float | None = None) -> Repeatability:
     """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI; with
     ``stderrs`` also the noise-corrected std and its MLS interval (module doc; ``stderr_dofs``: degrees of
-    freedom of each run's squared standard error, default infinite = known)."""
+    freedom of each run's squared standard error, independent across runs, default infinite = known;
+    ``stderr_mean_dof``: instead, the degrees of freedom of mean(se^2) itself, when all the standard errors come
+    from one shared fit and are fully dependent, so Satterthwaite's sum over runs does not apply)."""
     v = np.asarray(values, float)
     ok = np.isfinite(v)
     v = v[ok]
@@ -116,7 +118,9 @@ def repeatability(values, stderrs=None, *, relative: bool = False, confidence: f
         var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / nu**2
         nu1 = float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(nu)
         d = None if stderr_dofs is None else np.asarray(stderr_dofs, float)[ok]
-        if d is None or not np.all(np.isfinite(d)):
+        if stderr_mean_dof is not None:
+            nu2 = float(stderr_mean_dof) if np.isfinite(stderr_mean_dof) and stderr_mean_dof > 0 else math.inf
+        elif d is None or not np.all(np.isfinite(d)):
             nu2 = math.inf
         else:
             den = float(np.sum(e2**2 / np.maximum(d, 1e-9)))
@@ -224,15 +228,63 @@ STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value"
                                 "noise_corrected_ci_high", "unit", "confidence"]
 
 
+#: terms of the pooled model (Q, N, B, K; not the rate ramp R) whose AVAR at T is a run mean's scatter: a ramp
+#: restarting at each turn-on offsets every equal-length run's mean by the same R T / 2 (no scatter between runs)
+NOISE_TERMS = (0, 1, 2, 3)
+
+
+def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict) -> pd.DataFrame:
+    """The static run table (:data:`STATIC_RUN_COLUMNS`) with each run's turn-on bias standard error
+    sqrt(sigma_A^2(T)) re-read from ONE noise model per channel fitted to the Allan variances of all its runs
+    (:func:`assets_lib.noise.pooled.fit_pooled_curves`; the runs of one device share its noise), B kept whether or
+    not it was resolved. A per-run fit holds an unresolved flicker floor at zero and under-states sigma_A^2(T)
+    (module doc, "Known bias"); pooled over the runs the floor is estimated once, without the per-run bias.
+
+    ``allan_by_run``: run_id -> the run's ``allan`` table (``allan_deviation`` stage: channel, tau_s, adev, edf).
+    Runs without a table keep their own standard errors. Adds ``bias_stderr_mean_dof`` (degrees of freedom of the
+    channel's mean(se^2): the runs' standard errors are one fit's, not independent) and ``bias_stderr_model``
+    ('pooled' or 'per_run')."""
+    from assets_lib.noise.pooled import fit_pooled_curves
+
+    out = runs.copy()
+    out["bias_stderr_mean_dof"] = np.nan
+    out["bias_stderr_model"] = "per_run"
+    have = out["run_id"].astype(str).isin({str(k) for k in allan_by_run})
+    for ch, g in out[have].groupby("channel", sort=True):
+        curves = []
+        for rid in g["run_id"].astype(str):
+            a = allan_by_run[rid]
+            a = a[a["channel"] == ch]
+            curves.append((a["tau_s"].to_numpy(float), a["adev"].to_numpy(float) ** 2, a["edf"].to_numpy(float)))
+        if len(curves) < 2:
+            continue
+        fit = fit_pooled_curves(*zip(*curves))
+        t = g["duration_s"].to_numpy(float)
+        avar, dof = fit.avar_dof(t, terms=NOISE_TERMS)
+        gbar = np.column_stack([3.0 / t**2, 1.0 / t, np.ones_like(t), t / 3.0, 0.0 * t]).mean(axis=0)
+        var_mean = float(gbar @ fit.theta_cov @ gbar)
+        out.loc[g.index, "bias_stderr"] = np.sqrt(np.maximum(avar, 0.0))
+        out.loc[g.index, "bias_stderr_dof"] = dof
+        out.loc[g.index, "bias_stderr_mean_dof"] = (2.0 * float(np.mean(avar)) ** 2 / var_mean if var_mean > 0
+                                                    else np.inf)
+        out.loc[g.index, "bias_stderr_model"] = "pooled"
+    return out
+
+
 def static_repeatability(runs: pd.DataFrame, *, confidence: float = 0.95) -> pd.DataFrame:
     """[SEED000] eq. 23 over power-cycled static runs: per channel the bias repeatability (std of the turn-on
     biases, absolute, with the noise-corrected value and its MLS interval) and the repeatability of the N and B
-    terms (relative std)."""
+    terms (relative std). Bias standard errors from one shared fit (:func:`pooled_bias_stderrs`) give mean(se^2)
+    the fit's degrees of freedom."""
     rows = []
     for ch, g in runs.groupby("channel", sort=True):
         for q, rel in (("bias", False), ("N", True), ("B", True)):
             dofs = g["bias_stderr_dof"] if (q == "bias" and "bias_stderr_dof" in g) else None
-            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence, stderr_dofs=dofs)
+            mean_dof = None
+            if q == "bias" and "bias_stderr_mean_dof" in g and (g.get("bias_stderr_model") == "pooled").all():
+                mean_dof = float(g["bias_stderr_mean_dof"].iloc[0])
+            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence, stderr_dofs=dofs,
+                              stderr_mean_dof=mean_dof)
             rows.append(dict(channel=ch, quantity=f"{q}_repeatability", n_runs=r.n_runs, mean=r.mean, value=r.std,
                              ci_low=r.ci_low, ci_high=r.ci_high, relative=rel,
                              within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,
