@@ -228,10 +228,10 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, 
         if plan == "markov" and c == 0:  # imulab allan --markov (octave taus, as its default) on the long run
             run["noise_markov"] = noise_table(fit_all(results, markov=True))
         runs.append(run)
+        allan[ing.manifest.run_id] = tables["allan"]  # every static record's curve enters the device's noise fit
         if c > 0:  # the equal-length power-cycled runs (a rate ramp offsets the mean of runs of other lengths)
             static.append(tables["static_terms"])
-            allan[ing.manifest.run_id] = tables["allan"]
-    # the repeatability stage's path: bias standard errors from one noise model per channel over the runs
+    # the repeatability stage's path: bias standard errors from one noise model per channel over the device's records
     terms = pooled_bias_stderrs(pd.concat(static, ignore_index=True), allan)
     rep = static_repeatability(terms)
     return {"seed": seed, "trial": k, "grade": grade, "plan": plan, "truth": truth, "runs": runs,

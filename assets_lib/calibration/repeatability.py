@@ -16,14 +16,28 @@ runs' standard-error degrees of freedom; infinite when the standard errors are t
 is the exact chi-square interval of E(s^2) shifted by mean(se^2)). The limits on theta are truncated at zero and
 square-rooted (an interval on a standard deviation).
 
-Known bias (issue 15, not fixed): on the 200 s power-cycled runs the per-run standard error sqrt(sigma_A^2(T))
-comes from the noise fit's eliminated model, which holds an unidentified flicker term B at zero (gyro B is a
-bound in 78 % of those runs): the AVAR at the record length then misses the flicker floor (median 0.58 of the
-truth's on tactical gyros), mean(se^2) is too small and the noise-corrected value too large (gyro mean z +0.10,
-tactical +0.20 in benchmarks/coverage_noise.py). Predicting the AVAR at T with B refitted unconstrained per run
-over-corrected (90 trials: tactical coverage 1.000, navigation mean z -0.39): per run the floor is unresolved
-and any non-negative per-run estimate of it is biased; an unbiased correction needs the floor estimated once over
-all the runs of the channel (same device, same noise), which the run table does not carry yet.
+Turn-on bias standard errors (issue 15, session 7): each run's se^2 is the Allan variance at the record length T,
+sigma_A^2(T) ([IEEE952] C.1). Read from each run's own noise fit it held an unidentified flicker floor B at zero
+(gyro B only a bound in 78 % of the 200 s power-cycled runs): median 0.58 of the truth's sigma_A^2(T) on
+tactical gyros, mean(se^2) too small and the noise-corrected value too large (gyro mean z +0.09, tactical
++0.22). Per run, any non-negative estimate of an unresolved floor is biased, and refitting B unconstrained per
+run over-corrected (tactical coverage 1.000, navigation mean z -0.39). :func:`pooled_bias_stderrs` instead
+fits ONE noise model per channel to the EDF-weighted mean Allan variance of all the device's static records
+(the power-cycled runs and any longer static record: one device, one noise;
+:func:`assets_lib.noise.pooled.fit_pooled_curves`), B kept (non-negative) whether or not the selection admits it,
+K and R selected, and reads every run's se^2 from it without the rate ramp (a ramp restarting at each turn-on
+offsets every equal-length run's mean alike). mean(se^2) then comes from one fit, not from independent per-run
+estimates: its degrees of freedom nu_2 are the fit's (2 mean(se^2)^2 / Var from the fit's Wald covariance), not
+Satterthwaite's sum over runs, which would count the shared estimate q times.
+Measured (benchmarks/coverage_noise.py's trial, seed 16021, 162 device/extra_terms trials, 486 rows per sensor,
+trial-clustered SEs), per-run fit -> pooled fit: gyro coverage 0.953 -> 0.940, mean z +0.091 -> -0.043 (+-0.046),
+sd 1.04 -> 1.07; tactical mean z +0.215 -> -0.009 (+-0.068); navigation -0.030 -> -0.207 (+-0.084), coverage
+0.951 -> 0.914: not met there. Why: the navigation gyro's true floor is ~20x below what even the pooled records
+resolve ((2 ln 2 / pi) B^2 = 9e-17 vs N^2 / T = 1.7e-15 rad^2/s^2), and a non-negative estimate of a floor at
+the resolution limit is biased up (the same bias as per run, now much smaller and of the opposite sign to the old
+zeroed floor); an unconstrained pooled B is unbiased in sigma_A^2(T) but its noise (se^2 relative sd ~1 there)
+widened the z sd to 1.5-2.1, and clipping its negative predictions biased z up (+0.57 to +0.82 navigation). The
+accelerometer rows keep meeting (0.953, +0.036, 1.01).
 """
 
 from __future__ import annotations
@@ -233,17 +247,20 @@ STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value"
 NOISE_TERMS = (0, 1, 2, 3)
 
 
-def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict) -> pd.DataFrame:
+def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict, nonnegative: bool = True,
+                        keep_flicker: bool = True) -> pd.DataFrame:
     """The static run table (:data:`STATIC_RUN_COLUMNS`) with each run's turn-on bias standard error
-    sqrt(sigma_A^2(T)) re-read from ONE noise model per channel fitted to the Allan variances of all its runs
-    (:func:`assets_lib.noise.pooled.fit_pooled_curves`; the runs of one device share its noise), B kept whether or
-    not it was resolved. A per-run fit holds an unresolved flicker floor at zero and under-states sigma_A^2(T)
-    (module doc, "Known bias"); pooled over the runs the floor is estimated once, without the per-run bias.
+    sqrt(sigma_A^2(T)) re-read from ONE noise model per channel fitted to the Allan variances of all the device's
+    static records (:func:`assets_lib.noise.pooled.fit_pooled_curves`, module doc "Turn-on bias standard errors"):
+    the flicker floor is estimated once over all of them instead of held at zero per run.
 
-    ``allan_by_run``: run_id -> the run's ``allan`` table (``allan_deviation`` stage: channel, tau_s, adev, edf).
-    Runs without a table keep their own standard errors. Adds ``bias_stderr_mean_dof`` (degrees of freedom of the
-    channel's mean(se^2): the runs' standard errors are one fit's, not independent) and ``bias_stderr_model``
-    ('pooled' or 'per_run')."""
+    ``allan_by_run``: run_id -> the ``allan`` table of one static record of the device (``allan_deviation`` stage:
+    channel, tau_s, adev, edf); every table enters the fit (records not in ``runs``, e.g. a longer static run,
+    too); runs without a table keep their own standard errors. ``nonnegative`` / ``keep_flicker``: the fit's
+    constraint and whether B stays in it when the selection does not admit it (defaults: the measured choice).
+    Adds ``bias_stderr_mean_dof`` (degrees of freedom of the channel's mean(se^2): one fit's, the runs' standard
+    errors are not independent) and ``bias_stderr_model`` ('pooled' or 'per_run'); ``bias_stderr_dof`` becomes
+    each run's sigma_A^2(T) dof under the pooled fit."""
     from assets_lib.noise.pooled import fit_pooled_curves
 
     out = runs.copy()
@@ -252,13 +269,14 @@ def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict) -> pd.DataFrame:
     have = out["run_id"].astype(str).isin({str(k) for k in allan_by_run})
     for ch, g in out[have].groupby("channel", sort=True):
         curves = []
-        for rid in g["run_id"].astype(str):
-            a = allan_by_run[rid]
+        for a in allan_by_run.values():  # every static record of the device: one noise, one fit
             a = a[a["channel"] == ch]
+            if a.empty:
+                continue
             curves.append((a["tau_s"].to_numpy(float), a["adev"].to_numpy(float) ** 2, a["edf"].to_numpy(float)))
         if len(curves) < 2:
             continue
-        fit = fit_pooled_curves(*zip(*curves))
+        fit = fit_pooled_curves(*zip(*curves), nonnegative=nonnegative, keep_flicker=keep_flicker)
         t = g["duration_s"].to_numpy(float)
         avar, dof = fit.avar_dof(t, terms=NOISE_TERMS)
         gbar = np.column_stack([3.0 / t**2, 1.0 / t, np.ones_like(t), t / 3.0, 0.0 * t]).mean(axis=0)

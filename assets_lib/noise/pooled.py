@@ -164,7 +164,7 @@ def _design5(tau: np.ndarray) -> np.ndarray:
     return np.column_stack([_design(tau), tau**2 / 2.0])
 
 
-def fit_pooled_curves(tau_s, avar, edf) -> PooledCurveFit:
+def fit_pooled_curves(tau_s, avar, edf, nonnegative: bool = False, keep_flicker: bool = True) -> PooledCurveFit:
     """[IEEE952] Annex C fitted to the EDF-weighted mean of the Allan variances of records of one channel.
 
     ``tau_s``, ``avar``, ``edf``: one array per record (the ``allan`` table of each run: tau, adev^2, edf); the
@@ -197,12 +197,20 @@ def fit_pooled_curves(tau_s, avar, edf) -> PooledCurveFit:
         if best is None or score < best[0]:
             best = (score, full)
     sel = best[1]
-    cols = [0, 1, 2] + [j for j in (3, 4) if sel[j] > 0]
-    model = np.maximum(a_mat @ sel, 1e-300)
+    cols = [0, 1] + [j for j in (2, 3, 4) if sel[j] > 0 or (j == 2 and keep_flicker)]
+    if nonnegative:  # B kept, every term >= 0 (NNLS); the covariance over the terms off the boundary
+        coef, _ = _irls_nnls(a_mat[:, cols], y, w)
+        theta = np.zeros(5)
+        theta[cols] = coef
+        model = np.maximum(a_mat @ theta, 1e-300)
+        cols = [j for j in cols if theta[j] > 0]
+    else:
+        model = np.maximum(a_mat @ sel, 1e-300)
     aw = a_mat[:, cols] * (w / model)[:, None] / np.sqrt(2.0)  # whitened: unit-variance relative residuals
     info_inv = np.linalg.pinv(aw.T @ aw)
-    theta = np.zeros(5)
-    theta[cols] = info_inv @ (aw.T @ (y * w / model / np.sqrt(2.0)))
+    if not nonnegative:
+        theta = np.zeros(5)
+        theta[cols] = info_inv @ (aw.T @ (y * w / model / np.sqrt(2.0)))
     cov = np.zeros((5, 5))
     cov[np.ix_(cols, cols)] = info_inv
     return PooledCurveFit(theta, cov, (bool(sel[2] > 0), bool(sel[3] > 0), bool(sel[4] > 0)), len(rows))
