@@ -248,7 +248,7 @@ NOISE_TERMS = (0, 1, 2, 3)
 
 
 def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict, nonnegative: bool = True,
-                        keep_flicker: bool = True) -> pd.DataFrame:
+                        keep_flicker: bool = False) -> pd.DataFrame:
     """The static run table (:data:`STATIC_RUN_COLUMNS`) with each run's turn-on bias standard error
     sqrt(sigma_A^2(T)) re-read from ONE noise model per channel fitted to the Allan variances of all the device's
     static records (:func:`assets_lib.noise.pooled.fit_pooled_curves`, module doc "Turn-on bias standard errors"):

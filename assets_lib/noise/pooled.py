@@ -130,16 +130,10 @@ def _select_terms(a_mat: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.n
 
 @dataclass(frozen=True)
 class PooledCurveFit:
-    """[IEEE952] Annex C model of several records of one channel with the same noise (the power-cycled runs of a
+    """[IEEE952] Annex C model of several records of one channel with the same noise (the static records of one
     device), fitted once to their EDF-weighted mean Allan variance; theta = (Q^2, N^2, (2 ln 2 / pi) B^2, K^2,
-    R^2) (eq. C.23 with the rate ramp R^2 tau^2 / 2).
-
-    ``theta`` is the unconstrained weighted least-squares solution with Q, N and B always in the model and K, R
-    when the selection admits them (each lowering chi^2 by more than ``MODEL_PENALTY``): a flicker floor the
-    records do not resolve is estimated, not held at zero nor clipped at zero, so the model AVAR is an unbiased
-    linear prediction (a non-negative estimate of an unresolved floor is biased up, a zeroed one down).
-    ``theta_cov`` is its Wald covariance (relative AVAR error variance 2 / EDF per tau, octave taus taken as
-    independent, weights from the selected non-negative fit)."""
+    R^2) (eq. C.23 with the rate ramp R^2 tau^2 / 2); ``theta_cov`` its Wald covariance (relative AVAR error
+    variance 2 / EDF per tau, octave taus taken as independent) over the terms off the zero boundary."""
 
     theta: np.ndarray
     theta_cov: np.ndarray
@@ -164,14 +158,17 @@ def _design5(tau: np.ndarray) -> np.ndarray:
     return np.column_stack([_design(tau), tau**2 / 2.0])
 
 
-def fit_pooled_curves(tau_s, avar, edf, nonnegative: bool = False, keep_flicker: bool = True) -> PooledCurveFit:
+def fit_pooled_curves(tau_s, avar, edf, nonnegative: bool = True, keep_flicker: bool = False) -> PooledCurveFit:
     """[IEEE952] Annex C fitted to the EDF-weighted mean of the Allan variances of records of one channel.
 
     ``tau_s``, ``avar``, ``edf``: one array per record (the ``allan`` table of each run: tau, adev^2, edf); the
-    curves are averaged per tau weighted by EDF (taus missing from a record weigh zero). K and R are selected as
-    in :func:`fit_pooled_allan` (relative-error NNLS, ``MODEL_PENALTY`` per term); the returned theta is the
-    unconstrained weighted least-squares fit with Q, N, B and the selected K, R (:class:`PooledCurveFit`), its
-    covariance the Wald one (Var(avar_hat / avar) = 2 / EDF at each tau, [NIST1065] sec. 5.3)."""
+    curves are averaged per tau weighted by EDF (taus missing from a record weigh zero). Q and N always, B, K and
+    R each when it lowers chi^2 by more than ``MODEL_PENALTY`` (relative-error NNLS as :func:`fit_pooled_allan`,
+    with the rate-ramp column). ``keep_flicker``: B stays in the model even when not selected; ``nonnegative``:
+    the returned theta is the NNLS fit, else the unconstrained weighted least-squares fit of the same terms
+    (unbiased where a term is at the resolution limit, but noisy). Covariance: Wald, Var(avar_hat / avar) =
+    2 / EDF at each tau ([NIST1065] sec. 5.3). Issue 15 measured the three choices
+    (assets_lib.calibration.repeatability module doc); the defaults are the one kept."""
     rows = [(np.asarray(t, float), np.asarray(a, float), np.asarray(e, float)) for t, a, e in zip(tau_s, avar, edf)]
     grid = np.unique(np.concatenate([t[np.isfinite(t) & (t > 0)] for t, _, _ in rows]))
     num = np.zeros(grid.size)
