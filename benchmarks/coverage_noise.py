@@ -5,8 +5,10 @@ Each trial draws a device of one grade (``example_device``; grades cycled) and s
 power-cycled runs of a sixth of it. Every run goes through the ``allan_deviation`` stage's own computation
 (``assets_lib.stages.noise.allan_tables``: octave OADEV, the IEEE 952 fit with ``tau_min_s='auto'``, the
 ``static_terms`` rows) and the equal-length power-cycled runs through the ``repeatability`` stage's
-``static_repeatability`` (the long run is left out there: a rate ramp offsets the mean of a run of another length by
-R (T1 - T2) / 2, a deterministic difference the repeatability's noise model does not describe).
+``pooled_bias_stderrs`` (the turn-on bias standard errors from one noise fit per channel over the Allan curves of
+all the device's static records, the long run's included; issue 15, session 7) and ``static_repeatability`` (the
+long run's mean is left out there: a rate ramp offsets the mean of a run of another length by R (T1 - T2) / 2, a
+deterministic difference the repeatability's noise model does not describe).
 Noise plans (cycled per grade):
 
 - ``device``: the grade's own noise (N, B, K; Q on the navigation gyro);

@@ -24,20 +24,27 @@ tactical gyros, mean(se^2) too small and the noise-corrected value too large (gy
 run over-corrected (tactical coverage 1.000, navigation mean z -0.39). :func:`pooled_bias_stderrs` instead
 fits ONE noise model per channel to the EDF-weighted mean Allan variance of all the device's static records
 (the power-cycled runs and any longer static record: one device, one noise;
-:func:`assets_lib.noise.pooled.fit_pooled_curves`), B kept (non-negative) whether or not the selection admits it,
-K and R selected, and reads every run's se^2 from it without the rate ramp (a ramp restarting at each turn-on
-offsets every equal-length run's mean alike). mean(se^2) then comes from one fit, not from independent per-run
-estimates: its degrees of freedom nu_2 are the fit's (2 mean(se^2)^2 / Var from the fit's Wald covariance), not
-Satterthwaite's sum over runs, which would count the shared estimate q times.
-Measured (benchmarks/coverage_noise.py's trial, seed 16021, 162 device/extra_terms trials, 486 rows per sensor,
-trial-clustered SEs), per-run fit -> pooled fit: gyro coverage 0.953 -> 0.940, mean z +0.091 -> -0.043 (+-0.046),
-sd 1.04 -> 1.07; tactical mean z +0.215 -> -0.009 (+-0.068); navigation -0.030 -> -0.207 (+-0.084), coverage
-0.951 -> 0.914: not met there. Why: the navigation gyro's true floor is ~20x below what even the pooled records
-resolve ((2 ln 2 / pi) B^2 = 9e-17 vs N^2 / T = 1.7e-15 rad^2/s^2), and a non-negative estimate of a floor at
-the resolution limit is biased up (the same bias as per run, now much smaller and of the opposite sign to the old
-zeroed floor); an unconstrained pooled B is unbiased in sigma_A^2(T) but its noise (se^2 relative sd ~1 there)
-widened the z sd to 1.5-2.1, and clipping its negative predictions biased z up (+0.57 to +0.82 navigation). The
-accelerometer rows keep meeting (0.953, +0.036, 1.01).
+:func:`assets_lib.noise.pooled.fit_pooled_curves`: Q, N, and B, K, R each selected by ``MODEL_PENALTY``,
+non-negative) and reads every run's se^2 from it at T without the rate ramp (a ramp restarting at each turn-on
+offsets every equal-length run's mean alike: no scatter). Pooled, the floor is resolved where the runs resolve it
+together. mean(se^2) then comes from one fit, not from independent per-run estimates: its degrees of freedom
+nu_2 are the fit's (2 mean(se^2)^2 / Var, Var from the fit's Wald covariance), not Satterthwaite's sum over
+runs, which would count the one estimate q times.
+
+Measured on benchmarks/coverage_noise.py's trials (seed 16021, the 162 device/extra_terms trials of k < 240,
+486 rows per sensor, trial-clustered SEs), per-run fit -> pooled fit (coverage, mean z, sd z):
+gyro 0.953 +0.091 1.04 -> 0.949 +0.007 (+-0.044) 1.06; tactical 0.957 +0.215 0.99 -> 0.963 +0.056 (+-0.065) 1.00;
+consumer unchanged (0.951 +0.086 1.05); navigation 0.951 -0.030 1.07 -> 0.932 -0.122 (+-0.081) 1.12;
+accelerometer 0.951 +0.075 1.00 -> 0.953 +0.036 1.01 (navigation 0.920 +0.202 -> 0.932 +0.090, tactical
+0.981 -> 0.975, sd 0.88 -> 0.93). Not met: navigation gyro (mean z -0.12 +- 0.08, 1.5 SE from 0, within one SE of the 0.1 limit; sd 1.12) and
+tactical accelerometer coverage 0.975 (+-0.012). Navigation gyro: se^2 is ~3x the turn-on variance there, so
+any error in se^2 moves z; on the extra_terms plan the ramp of a short record is partly taken for rate random
+walk (K selected instead of R on the 82 s longest tau) and K extrapolated to T over-states se^2 (one channel:
+6x). Alternatives measured on the same trials: B kept when not selected (gyro navigation -0.21/-0.27, the
+non-negative estimate of an unresolved floor is biased up); unconstrained B (unbiased sigma_A^2(T), but its
+noise gave z sd 1.5-2.1 and clipped negative predictions, navigation coverage 0.68-0.75); power-cycled runs only,
+without the 1200 s record (gyro sd 1.105, navigation -0.14, extra_terms -0.21).
+The ``imulab repeatability`` command (:func:`static_run_terms`) still uses each run's own fit.
 """
 
 from __future__ import annotations
