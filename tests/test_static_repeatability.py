@@ -138,7 +138,11 @@ def test_pooled_curve_fit_selects_the_flicker_floor_and_predicts_the_avar_at_the
 
 
 def test_pooled_bias_stderrs_replace_the_per_run_model_and_give_mean_se2_the_shared_dof():
-    from assets_lib.calibration.repeatability import STATIC_RUN_COLUMNS, pooled_bias_stderrs, repeatability
+    from assets_lib.calibration.repeatability import (
+        STATIC_RUN_COLUMNS,
+        pooled_bias_stderrs,
+        repeatability,
+    )
 
     theta = (0.0, 1e-8, 4e-10, 0.0, 0.0)
     tau = 0.01 * 2.0 ** np.arange(14)

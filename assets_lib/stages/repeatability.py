@@ -5,8 +5,12 @@ from __future__ import annotations
 
 import pandas as pd
 
-from assets_lib.calibration.repeatability import (REPEATABILITY_COLUMNS, pooled_bias_stderrs, repeatability_table,
-                                                  static_repeatability)
+from assets_lib.calibration.repeatability import (
+    REPEATABILITY_COLUMNS,
+    pooled_bias_stderrs,
+    repeatability_table,
+    static_repeatability,
+)
 from assets_lib.stages.spec import StageOutput, stage
 
 
