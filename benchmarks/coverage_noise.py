@@ -5,8 +5,10 @@ Each trial draws a device of one grade (``example_device``; grades cycled) and s
 power-cycled runs of a sixth of it. Every run goes through the ``allan_deviation`` stage's own computation
 (``assets_lib.stages.noise.allan_tables``: octave OADEV, the IEEE 952 fit with ``tau_min_s='auto'``, the
 ``static_terms`` rows) and the equal-length power-cycled runs through the ``repeatability`` stage's
-``static_repeatability`` (the long run is left out there: a rate ramp offsets the mean of a run of another length by
-R (T1 - T2) / 2, a deterministic difference the repeatability's noise model does not describe).
+``pooled_bias_stderrs`` (the turn-on bias standard errors from one noise fit per channel over the Allan curves of
+all the device's static records, the long run's included; issue 15, session 7) and ``static_repeatability`` (the
+long run's mean is left out there: a rate ramp offsets the mean of a run of another length by R (T1 - T2) / 2, a
+deterministic difference the repeatability's noise model does not describe).
 Noise plans (cycled per grade):
 
 - ``device``: the grade's own noise (N, B, K; Q on the navigation gyro);
@@ -196,7 +198,7 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, 
                 plan: str | None = None) -> dict:
     """One device, ``cycles`` power-cycled static runs through the allan_deviation and repeatability stages'
     computations; returns the trial outputs :func:`score_noise` scores (tables and truths)."""
-    from assets_lib.calibration.repeatability import static_repeatability
+    from assets_lib.calibration.repeatability import pooled_bias_stderrs, static_repeatability
     from assets_lib.noise.identification import fit_all, noise_table
     from assets_lib.sim.effects import sensor_chain
     from assets_lib.sim.kinematics import body_inputs
@@ -216,7 +218,7 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, 
     site = SiteSpec()
     x = body_inputs(build_plan("static_long", static_duration_s=10.0), np.array([5.0]), site.latitude_deg, 9.79)
     inputs = {"gyro": x.omega_b_radps[0], "accel": x.f_b_mps2[0]}
-    truth, runs, static = {}, [], []
+    truth, runs, static, allan = {}, [], [], {}
     for sensor, tri in (("gyro", dev.gyro), ("accel", dev.accel)):
         lsb = tri.lsb * si_factor(sensor, tri.lsb_unit)
         sb = dev.bias_repeatability[0 if sensor == "gyro" else 1]
@@ -243,11 +245,14 @@ def noise_trial(seed: int, k: int, duration_s: float = 1200.0, cycles: int = 5, 
         if plan == "markov" and c == 0:  # imulab allan --markov (octave taus, as its default) on the long run
             run["noise_markov"] = noise_table(fit_all(results, markov=True))
         runs.append(run)
+        allan[ing.manifest.run_id] = tables["allan"]  # every static record's curve enters the device's noise fit
         if c > 0:  # the equal-length power-cycled runs (a rate ramp offsets the mean of runs of other lengths)
             static.append(tables["static_terms"])
-    rep = static_repeatability(pd.concat(static, ignore_index=True))
+    # the repeatability stage's path: bias standard errors from one noise model per channel over the device's records
+    terms = pooled_bias_stderrs(pd.concat(static, ignore_index=True), allan)
+    rep = static_repeatability(terms)
     return {"seed": seed, "trial": k, "grade": grade, "plan": plan, "truth": truth, "runs": runs,
-            "static_terms": pd.concat(static, ignore_index=True), "static_repeatability": rep}
+            "static_terms": terms, "static_repeatability": rep}
 
 
 def _row(o: dict, family: str, channel: str, run: str, truth: float, est: float, lo: float, hi: float, z: float,

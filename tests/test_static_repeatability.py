@@ -105,3 +105,68 @@ def test_pipeline_repeatability_stage_on_static_runs(tmp_path, monkeypatch):
     t = pd.read_parquet(files[0]).set_index(["channel", "quantity"])
     assert t.loc[("gyro_x_radps", "bias_repeatability"), "n_runs"] == 4
     assert t.loc[("gyro_x_radps", "bias_repeatability"), "value"] == pytest.approx(np.std(biases, ddof=1), rel=0.1)
+
+
+def _model_curve(tau, q2, n2, fl, k2, r2):
+    return 3 * q2 / tau**2 + n2 / tau + fl + k2 * tau / 3 + r2 * tau**2 / 2
+
+
+def test_pooled_curve_fit_selects_the_flicker_floor_and_predicts_the_avar_at_the_record_length():
+    """fit_pooled_curves on noise-free model curves of three records: a resolved floor is selected and exact, an
+    unresolved one is dropped unless kept (keep_flicker), and the unconstrained fit reproduces the curve too."""
+    from assets_lib.noise.pooled import fit_pooled_curves
+
+    tau = 0.01 * 2.0 ** np.arange(14)  # octave taus up to ~82 s
+    edf = 2e4 / (tau / 0.01)
+    theta = (0.0, 1e-8, 4e-10, 0.0, 0.0)  # white + a resolved flicker floor
+    fit = fit_pooled_curves([tau] * 3, [_model_curve(tau, *theta)] * 3, [edf] * 3)
+    assert fit.selected == (True, False, False) and fit.n_records == 3
+    assert fit.theta[1] == pytest.approx(theta[1], rel=1e-6) and fit.theta[2] == pytest.approx(theta[2], rel=1e-6)
+    avar, dof = fit.avar_dof(np.array([200.0]))
+    assert avar[0] == pytest.approx(_model_curve(200.0, *theta), rel=1e-6)
+    assert 1.0 < dof[0] < np.inf
+    weak = (0.0, 1e-8, 4e-11, 0.0, 0.0)  # a floor 1/3 of the white AVAR at the longest tau: not selected
+    curves = ([tau] * 3, [_model_curve(tau, *weak)] * 3, [edf] * 3)
+    assert not fit_pooled_curves(*curves).selected[0] and fit_pooled_curves(*curves).theta[2] == 0.0
+    for kw in ({"keep_flicker": True}, {"keep_flicker": True, "nonnegative": False}):
+        assert fit_pooled_curves(*curves, **kw).theta[2] == pytest.approx(weak[2], rel=1e-6)
+    # a rate ramp is its own column, not a random walk, and the bias standard error leaves it out
+    ramp = (0.0, 1e-8, 4e-10, 0.0, 1e-12)
+    fr = fit_pooled_curves([tau] * 3, [_model_curve(tau, *ramp)] * 3, [100 * edf] * 3)  # e.g. a longer record
+    assert fr.selected == (True, False, True) and fr.theta[3] == 0.0
+    assert fr.avar_dof(np.array([200.0]), terms=(0, 1, 2, 3))[0][0] == pytest.approx(1e-8 / 200 + 4e-10, rel=1e-4)
+
+
+def test_pooled_bias_stderrs_replace_the_per_run_model_and_give_mean_se2_the_shared_dof():
+    from assets_lib.calibration.repeatability import (
+        STATIC_RUN_COLUMNS,
+        pooled_bias_stderrs,
+        repeatability,
+    )
+
+    theta = (0.0, 1e-8, 4e-10, 0.0, 0.0)
+    tau = 0.01 * 2.0 ** np.arange(14)
+    edf = 2e4 / (tau / 0.01)
+    runs, allan = [], {}
+    for i in range(4):
+        runs.append(dict(run_id=f"pc{i}", power_cycle_index=i, channel="gyro_x_radps", duration_s=200.0,
+                         bias=1e-4 * i, bias_stderr=1e-7, bias_stderr_dof=50.0, N=np.nan, N_stderr=np.nan, B=np.nan,
+                         B_stderr=np.nan, unit="rad/s", noise_warnings=""))
+        allan[f"pc{i}"] = pd.DataFrame({"channel": "gyro_x_radps", "tau_s": tau,
+                                        "adev": np.sqrt(_model_curve(tau, *theta)), "edf": edf})
+    out = pooled_bias_stderrs(pd.DataFrame(runs, columns=STATIC_RUN_COLUMNS), allan)
+    assert (out["bias_stderr_model"] == "pooled").all()
+    assert np.allclose(out["bias_stderr"], np.sqrt(_model_curve(200.0, *theta)), rtol=1e-6)
+    d = float(out["bias_stderr_mean_dof"].iloc[0])
+    assert np.isfinite(d) and d > 0
+    # one shared fit: mean(se^2) carries the fit's dof, not Satterthwaite's sum over 4 independent runs
+    v, se = out["bias"].to_numpy(), out["bias_stderr"].to_numpy()
+    shared = repeatability(v, se, stderr_mean_dof=d)
+    assert shared.noise_corrected_ci_low == pytest.approx(repeatability(v, se, stderr_dofs=[d / 4] * 4)
+                                                          .noise_corrected_ci_low, rel=1e-9)
+    assert shared.noise_corrected_ci_high != pytest.approx(repeatability(v, se, stderr_dofs=[d] * 4)
+                                                           .noise_corrected_ci_high, rel=1e-6)
+    # a run without an Allan table keeps its own standard error
+    part = pooled_bias_stderrs(pd.DataFrame(runs, columns=STATIC_RUN_COLUMNS), {k: allan[k] for k in ("pc0", "pc1")})
+    assert list(part["bias_stderr_model"]) == ["pooled", "pooled", "per_run", "per_run"]
+    assert part["bias_stderr"].iloc[3] == 1e-7

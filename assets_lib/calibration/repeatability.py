@@ -16,14 +16,35 @@ runs' standard-error degrees of freedom; infinite when the standard errors are t
 is the exact chi-square interval of E(s^2) shifted by mean(se^2)). The limits on theta are truncated at zero and
 square-rooted (an interval on a standard deviation).
 
-Known bias (issue 15, not fixed): on the 200 s power-cycled runs the per-run standard error sqrt(sigma_A^2(T))
-comes from the noise fit's eliminated model, which holds an unidentified flicker term B at zero (gyro B is a
-bound in 78 % of those runs): the AVAR at the record length then misses the flicker floor (median 0.58 of the
-truth's on tactical gyros), mean(se^2) is too small and the noise-corrected value too large (gyro mean z +0.10,
-tactical +0.20 in benchmarks/coverage_noise.py). Predicting the AVAR at T with B refitted unconstrained per run
-over-corrected (90 trials: tactical coverage 1.000, navigation mean z -0.39): per run the floor is unresolved
-and any non-negative per-run estimate of it is biased; an unbiased correction needs the floor estimated once over
-all the runs of the channel (same device, same noise), which the run table does not carry yet.
+Turn-on bias standard errors (issue 15, session 7): each run's se^2 is the Allan variance at the record length T,
+sigma_A^2(T) ([IEEE952] C.1). Read from each run's own noise fit it held an unidentified flicker floor B at zero
+(gyro B only a bound in 78 % of the 200 s power-cycled runs): median 0.58 of the truth's sigma_A^2(T) on
+tactical gyros, mean(se^2) too small and the noise-corrected value too large (gyro mean z +0.09, tactical
++0.22). Per run, any non-negative estimate of an unresolved floor is biased, and refitting B unconstrained per
+run over-corrected (tactical coverage 1.000, navigation mean z -0.39). :func:`pooled_bias_stderrs` instead
+fits ONE noise model per channel to the EDF-weighted mean Allan variance of all the device's static records
+(the power-cycled runs and any longer static record: one device, one noise;
+:func:`assets_lib.noise.pooled.fit_pooled_curves`: Q, N, and B, K, R each selected by ``MODEL_PENALTY``,
+non-negative) and reads every run's se^2 from it at T without the rate ramp (a ramp restarting at each turn-on
+offsets every equal-length run's mean alike: no scatter). Pooled, the floor is resolved where the runs resolve it
+together. mean(se^2) then comes from one fit, not from independent per-run estimates: its degrees of freedom
+nu_2 are the fit's (2 mean(se^2)^2 / Var, Var from the fit's Wald covariance), not Satterthwaite's sum over
+runs, which would count the one estimate q times.
+
+Measured on benchmarks/coverage_noise.py's trials (seed 16021, the 162 device/extra_terms trials of k < 240,
+486 rows per sensor, trial-clustered SEs), per-run fit -> pooled fit (coverage, mean z, sd z):
+gyro 0.953 +0.091 1.04 -> 0.949 +0.007 (+-0.044) 1.06; tactical 0.957 +0.215 0.99 -> 0.963 +0.056 (+-0.065) 1.00;
+consumer unchanged (0.951 +0.086 1.05); navigation 0.951 -0.030 1.07 -> 0.932 -0.122 (+-0.081) 1.12;
+accelerometer 0.951 +0.075 1.00 -> 0.953 +0.036 1.01 (navigation 0.920 +0.202 -> 0.932 +0.090, tactical
+0.981 -> 0.975, sd 0.88 -> 0.93). Not met: navigation gyro (mean z -0.12 +- 0.08, 1.5 SE from 0, within one SE of the 0.1 limit; sd 1.12) and
+tactical accelerometer coverage 0.975 (+-0.012). Navigation gyro: se^2 is ~3x the turn-on variance there, so
+any error in se^2 moves z; on the extra_terms plan the ramp of a short record is partly taken for rate random
+walk (K selected instead of R on the 82 s longest tau) and K extrapolated to T over-states se^2 (one channel:
+6x). Alternatives measured on the same trials: B kept when not selected (gyro navigation -0.21/-0.27, the
+non-negative estimate of an unresolved floor is biased up); unconstrained B (unbiased sigma_A^2(T), but its
+noise gave z sd 1.5-2.1 and clipped negative predictions, navigation coverage 0.68-0.75); power-cycled runs only,
+without the 1200 s record (gyro sd 1.105, navigation -0.14, extra_terms -0.21).
+The ``imulab repeatability`` command (:func:`static_run_terms`) still uses each run's own fit.
 """
 
 from __future__ import annotations
@@ -84,10 +105,12 @@ def mls_difference_interval(s1: float, nu1: float, s2: float, nu2: float, confid
 
 
 def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95,
-                  stderr_dofs=None) -> Repeatability:
+                  stderr_dofs=None, stderr_mean_dof: float | None = None) -> Repeatability:
     """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI; with
     ``stderrs`` also the noise-corrected std and its MLS interval (module doc; ``stderr_dofs``: degrees of
-    freedom of each run's squared standard error, default infinite = known)."""
+    freedom of each run's squared standard error, independent across runs, default infinite = known;
+    ``stderr_mean_dof``: instead, the degrees of freedom of mean(se^2) itself, when all the standard errors come
+    from one shared fit and are fully dependent, so Satterthwaite's sum over runs does not apply)."""
     v = np.asarray(values, float)
     ok = np.isfinite(v)
     v = v[ok]
@@ -116,7 +139,9 @@ def repeatability(values, stderrs=None, *, relative: bool = False, confidence: f
         var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / nu**2
         nu1 = float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(nu)
         d = None if stderr_dofs is None else np.asarray(stderr_dofs, float)[ok]
-        if d is None or not np.all(np.isfinite(d)):
+        if stderr_mean_dof is not None:
+            nu2 = float(stderr_mean_dof) if np.isfinite(stderr_mean_dof) and stderr_mean_dof > 0 else math.inf
+        elif d is None or not np.all(np.isfinite(d)):
             nu2 = math.inf
         else:
             den = float(np.sum(e2**2 / np.maximum(d, 1e-9)))
@@ -224,15 +249,67 @@ STATIC_REPEATABILITY_COLUMNS = ["channel", "quantity", "n_runs", "mean", "value"
                                 "noise_corrected_ci_high", "unit", "confidence"]
 
 
+#: terms of the pooled model (Q, N, B, K; not the rate ramp R) whose AVAR at T is a run mean's scatter: a ramp
+#: restarting at each turn-on offsets every equal-length run's mean by the same R T / 2 (no scatter between runs)
+NOISE_TERMS = (0, 1, 2, 3)
+
+
+def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict, nonnegative: bool = True,
+                        keep_flicker: bool = False) -> pd.DataFrame:
+    """The static run table (:data:`STATIC_RUN_COLUMNS`) with each run's turn-on bias standard error
+    sqrt(sigma_A^2(T)) re-read from ONE noise model per channel fitted to the Allan variances of all the device's
+    static records (:func:`assets_lib.noise.pooled.fit_pooled_curves`, module doc "Turn-on bias standard errors"):
+    the flicker floor is estimated once over all of them instead of held at zero per run.
+
+    ``allan_by_run``: run_id -> the ``allan`` table of one static record of the device (``allan_deviation`` stage:
+    channel, tau_s, adev, edf); every table enters the fit (records not in ``runs``, e.g. a longer static run,
+    too); runs without a table keep their own standard errors. ``nonnegative`` / ``keep_flicker``: the fit's
+    constraint and whether B stays in it when the selection does not admit it (defaults: the measured choice).
+    Adds ``bias_stderr_mean_dof`` (degrees of freedom of the channel's mean(se^2): one fit's, the runs' standard
+    errors are not independent) and ``bias_stderr_model`` ('pooled' or 'per_run'); ``bias_stderr_dof`` becomes
+    each run's sigma_A^2(T) dof under the pooled fit."""
+    from assets_lib.noise.pooled import fit_pooled_curves
+
+    out = runs.copy()
+    out["bias_stderr_mean_dof"] = np.nan
+    out["bias_stderr_model"] = "per_run"
+    have = out["run_id"].astype(str).isin({str(k) for k in allan_by_run})
+    for ch, g in out[have].groupby("channel", sort=True):
+        curves = []
+        for a in allan_by_run.values():  # every static record of the device: one noise, one fit
+            a = a[a["channel"] == ch]
+            if a.empty:
+                continue
+            curves.append((a["tau_s"].to_numpy(float), a["adev"].to_numpy(float) ** 2, a["edf"].to_numpy(float)))
+        if len(curves) < 2:
+            continue
+        fit = fit_pooled_curves(*zip(*curves), nonnegative=nonnegative, keep_flicker=keep_flicker)
+        t = g["duration_s"].to_numpy(float)
+        avar, dof = fit.avar_dof(t, terms=NOISE_TERMS)
+        gbar = np.column_stack([3.0 / t**2, 1.0 / t, np.ones_like(t), t / 3.0, 0.0 * t]).mean(axis=0)
+        var_mean = float(gbar @ fit.theta_cov @ gbar)
+        out.loc[g.index, "bias_stderr"] = np.sqrt(np.maximum(avar, 0.0))
+        out.loc[g.index, "bias_stderr_dof"] = dof
+        out.loc[g.index, "bias_stderr_mean_dof"] = (2.0 * float(np.mean(avar)) ** 2 / var_mean if var_mean > 0
+                                                    else np.inf)
+        out.loc[g.index, "bias_stderr_model"] = "pooled"
+    return out
+
+
 def static_repeatability(runs: pd.DataFrame, *, confidence: float = 0.95) -> pd.DataFrame:
     """[SEED000] eq. 23 over power-cycled static runs: per channel the bias repeatability (std of the turn-on
     biases, absolute, with the noise-corrected value and its MLS interval) and the repeatability of the N and B
-    terms (relative std)."""
+    terms (relative std). Bias standard errors from one shared fit (:func:`pooled_bias_stderrs`) give mean(se^2)
+    the fit's degrees of freedom."""
     rows = []
     for ch, g in runs.groupby("channel", sort=True):
         for q, rel in (("bias", False), ("N", True), ("B", True)):
             dofs = g["bias_stderr_dof"] if (q == "bias" and "bias_stderr_dof" in g) else None
-            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence, stderr_dofs=dofs)
+            mean_dof = None
+            if q == "bias" and "bias_stderr_mean_dof" in g and (g.get("bias_stderr_model") == "pooled").all():
+                mean_dof = float(g["bias_stderr_mean_dof"].iloc[0])
+            r = repeatability(g[q], g[f"{q}_stderr"], relative=rel, confidence=confidence, stderr_dofs=dofs,
+                              stderr_mean_dof=mean_dof)
             rows.append(dict(channel=ch, quantity=f"{q}_repeatability", n_runs=r.n_runs, mean=r.mean, value=r.std,
                              ci_low=r.ci_low, ci_high=r.ci_high, relative=rel,
                              within_run_stderr_rms=r.within_run_stderr_rms, value_noise_corrected=r.std_noise_corrected,

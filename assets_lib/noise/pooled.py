@@ -91,21 +91,12 @@ def fit_pooled_allan(segments: list[np.ndarray], dt_s: float, max_cluster_fracti
     ok = e_sum > 0
     pooled = np.nansum(np.where(edf > 0, av, 0.0) * edf, axis=0)[ok] / e_sum[ok]
     tau = grid[ok] * dt_s
-    a_mat = np.column_stack([3.0 / tau**2, 1.0 / tau, np.ones_like(tau), tau / 3.0])
+    a_mat = _design(tau)
     w = np.sqrt(e_sum[ok])
-    best = None
-    fits = {}
-    for cols in ((0, 1), (0, 1, 2), (0, 1, 3), (0, 1, 2, 3)):
-        coef, chi2 = _irls_nnls(a_mat[:, cols], pooled, w)
-        score = chi2 + MODEL_PENALTY * (len(cols) - 2)
-        full = np.zeros(4)
-        full[list(cols)] = coef
-        fits[cols] = full
-        if best is None or score < best[0]:
-            best = (score, full)
-    q2, n2, fl, k2 = best[1]
+    best, fits = _select_terms(a_mat, pooled, w)
+    q2, n2, fl, k2 = best
     fl_est = float(fits[(0, 1, 2, 3) if k2 > 0 else (0, 1, 2)][2])  # B kept, K as selected
-    model = a_mat @ best[1]
+    model = a_mat @ best
     short = grid[ok] <= 16
     scale = np.ones(p)
     for k in valid:
@@ -114,6 +105,112 @@ def fit_pooled_allan(segments: list[np.ndarray], dt_s: float, max_cluster_fracti
         if r.size:
             scale[k] = float(np.median(r))
     return PooledAllanFit(scale * q2, scale * n2, float(fl), float(k2), fl_est)
+
+
+def _design(tau: np.ndarray) -> np.ndarray:
+    """[IEEE952] eq. C.23 columns for theta = (Q^2, N^2, (2 ln 2 / pi) B^2, K^2)."""
+    tau = np.asarray(tau, dtype=float)
+    return np.column_stack([3.0 / tau**2, 1.0 / tau, np.ones_like(tau), tau / 3.0])
+
+
+def _select_terms(a_mat: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Q and N always, B and K each when it lowers chi^2 by more than ``MODEL_PENALTY``: (selected theta, all fits)."""
+    best = None
+    fits = {}
+    for cols in ((0, 1), (0, 1, 2), (0, 1, 3), (0, 1, 2, 3)):
+        coef, chi2 = _irls_nnls(a_mat[:, cols], y, w)
+        score = chi2 + MODEL_PENALTY * (len(cols) - 2)
+        full = np.zeros(4)
+        full[list(cols)] = coef
+        fits[cols] = full
+        if best is None or score < best[0]:
+            best = (score, full)
+    return best[1], fits
+
+
+@dataclass(frozen=True)
+class PooledCurveFit:
+    """[IEEE952] Annex C model of several records of one channel with the same noise (the static records of one
+    device), fitted once to their EDF-weighted mean Allan variance; theta = (Q^2, N^2, (2 ln 2 / pi) B^2, K^2,
+    R^2) (eq. C.23 with the rate ramp R^2 tau^2 / 2); ``theta_cov`` its Wald covariance (relative AVAR error
+    variance 2 / EDF per tau, octave taus taken as independent) over the terms off the zero boundary."""
+
+    theta: np.ndarray
+    theta_cov: np.ndarray
+    selected: tuple[bool, bool, bool]  # (B, K, R) admitted by the MODEL_PENALTY selection
+    n_records: int
+
+    def avar_dof(self, tau_s, terms=(0, 1, 2, 3, 4)) -> tuple[np.ndarray, np.ndarray]:
+        """[IEEE952] eq. C.23 at ``tau_s`` from the ``terms`` (indices into theta) and its degrees of freedom
+        2 sigma^4 / (g' C g) (Satterthwaite; inf when the covariance gives it no variance)."""
+        g = _design5(np.atleast_1d(np.asarray(tau_s, dtype=float)))
+        g[:, [j for j in range(5) if j not in terms]] = 0.0
+        a = g @ self.theta
+        var = np.einsum("ij,jk,ik->i", g, self.theta_cov, g)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dof = np.where(var > 0, 2.0 * a**2 / var, np.inf)
+        return a, dof
+
+
+def _design5(tau: np.ndarray) -> np.ndarray:
+    """:func:`_design` plus the rate-ramp column tau^2 / 2 ([IEEE952] eq. C.23)."""
+    tau = np.asarray(tau, dtype=float)
+    return np.column_stack([_design(tau), tau**2 / 2.0])
+
+
+def fit_pooled_curves(tau_s, avar, edf, nonnegative: bool = True, keep_flicker: bool = False) -> PooledCurveFit:
+    """[IEEE952] Annex C fitted to the EDF-weighted mean of the Allan variances of records of one channel.
+
+    ``tau_s``, ``avar``, ``edf``: one array per record (the ``allan`` table of each run: tau, adev^2, edf); the
+    curves are averaged per tau weighted by EDF (taus missing from a record weigh zero). Q and N always, B, K and
+    R each when it lowers chi^2 by more than ``MODEL_PENALTY`` (relative-error NNLS as :func:`fit_pooled_allan`,
+    with the rate-ramp column). ``keep_flicker``: B stays in the model even when not selected; ``nonnegative``:
+    the returned theta is the NNLS fit, else the unconstrained weighted least-squares fit of the same terms
+    (unbiased where a term is at the resolution limit, but noisy). Covariance: Wald, Var(avar_hat / avar) =
+    2 / EDF at each tau ([NIST1065] sec. 5.3). Issue 15 measured the three choices
+    (assets_lib.calibration.repeatability module doc); the defaults are the one kept."""
+    rows = [(np.asarray(t, float), np.asarray(a, float), np.asarray(e, float)) for t, a, e in zip(tau_s, avar, edf)]
+    grid = np.unique(np.concatenate([t[np.isfinite(t) & (t > 0)] for t, _, _ in rows]))
+    num = np.zeros(grid.size)
+    den = np.zeros(grid.size)
+    for t, a, e in rows:
+        ok = np.isfinite(t) & np.isfinite(a) & (a > 0) & np.isfinite(e) & (e > 0)
+        i = np.searchsorted(grid, t[ok])
+        np.add.at(num, i, e[ok] * a[ok])
+        np.add.at(den, i, e[ok])
+    use = den > 0
+    if use.sum() < 6:
+        raise ValueError(f"fit_pooled_curves: {int(use.sum())} usable taus over {len(rows)} records; expected >= 6")
+    tau, y, e_sum = grid[use], num[use] / den[use], den[use]
+    a_mat = _design5(tau)
+    w = np.sqrt(e_sum)
+    best = None
+    for extra in ((), (2,), (3,), (4,), (2, 3), (2, 4), (3, 4), (2, 3, 4)):
+        cols = (0, 1) + extra
+        coef, chi2 = _irls_nnls(a_mat[:, cols], y, w)
+        score = chi2 + MODEL_PENALTY * len(extra)
+        full = np.zeros(5)
+        full[list(cols)] = coef
+        if best is None or score < best[0]:
+            best = (score, full)
+    sel = best[1]
+    cols = [0, 1] + [j for j in (2, 3, 4) if sel[j] > 0 or (j == 2 and keep_flicker)]
+    if nonnegative:  # B kept, every term >= 0 (NNLS); the covariance over the terms off the boundary
+        coef, _ = _irls_nnls(a_mat[:, cols], y, w)
+        theta = np.zeros(5)
+        theta[cols] = coef
+        model = np.maximum(a_mat @ theta, 1e-300)
+        cols = [j for j in cols if theta[j] > 0]
+    else:
+        model = np.maximum(a_mat @ sel, 1e-300)
+    aw = a_mat[:, cols] * (w / model)[:, None] / np.sqrt(2.0)  # whitened: unit-variance relative residuals
+    info_inv = np.linalg.pinv(aw.T @ aw)
+    if not nonnegative:
+        theta = np.zeros(5)
+        theta[cols] = info_inv @ (aw.T @ (y * w / model / np.sqrt(2.0)))
+    cov = np.zeros((5, 5))
+    cov[np.ix_(cols, cols)] = info_inv
+    return PooledCurveFit(theta, cov, (bool(sel[2] > 0), bool(sel[3] > 0), bool(sel[4] > 0)), len(rows))
 
 
 def _irls_nnls(a_mat: np.ndarray, y: np.ndarray, w: np.ndarray, passes: int = 3) -> tuple[np.ndarray, float]:
