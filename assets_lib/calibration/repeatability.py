@@ -208,22 +208,32 @@ STATIC_RUN_COLUMNS = ["run_id", "power_cycle_index", "channel", "duration_s", "b
                       "N", "N_stderr", "B", "B_stderr", "unit", "noise_warnings"]
 
 
-def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: float, units: dict | None = None
-                     ) -> pd.DataFrame:
+def static_run_terms(run_id: str, power_cycle_index: int, data: dict, rate_hz: float, units: dict | None = None,
+                     results: dict | None = None) -> pd.DataFrame:
     """One static run: per channel the turn-on bias (record mean) with its standard error sqrt(sigma_A^2(T)) read
     from the fitted noise model at the record length T ([IEEE952] C.1: the scatter of a T-long mean;
     white-noise sigma/sqrt(n) would be too small under bias instability), and the N and B terms of the fit
-    (:func:`assets_lib.noise.identification.fit_noise`, standard errors from the 95 % intervals / 3.92)."""
-    from assets_lib.noise import allan as al
+    (:func:`assets_lib.noise.identification.fit_noise`, standard errors from the 95 % intervals / 3.92).
+    ``results``: the run's :func:`static_run_allan` when the caller already has it."""
     from assets_lib.noise import identification as ni
 
+    results = results if results is not None else static_run_allan(data, rate_hz, units)
     rows = []
     for ch, y in data.items():
         y = np.asarray(y, float)
-        r = al.allan_deviation(y, rate_hz, "octave", channel=ch, unit=(units or {}).get(ch, ""))
-        rows.append(static_terms_row(run_id, power_cycle_index, ch, float(y.mean()), y.size / rate_hz, ni.fit_noise(r),
-                                     (units or {}).get(ch, "")))
+        rows.append(static_terms_row(run_id, power_cycle_index, ch, float(y.mean()), y.size / rate_hz,
+                                     ni.fit_noise(results[ch]), (units or {}).get(ch, "")))
     return pd.DataFrame(rows, columns=STATIC_RUN_COLUMNS)
+
+
+def static_run_allan(data: dict, rate_hz: float, units: dict | None = None) -> dict:
+    """Per channel of one static run the octave-spaced overlapping Allan deviation ([SEED002] eq. 4), as the
+    ``allan_deviation`` stage computes it; ``pd.concat([r.to_frame() for r in result.values()])`` is the run's
+    ``allan`` table that :func:`pooled_bias_stderrs` takes."""
+    from assets_lib.noise import allan as al
+
+    return {ch: al.allan_deviation(np.asarray(y, float), rate_hz, "octave", channel=ch, unit=(units or {}).get(ch, ""))
+            for ch, y in data.items()}
 
 
 def static_terms_row(run_id: str, power_cycle_index: int, channel: str, mean: float, duration_s: float, fit,
