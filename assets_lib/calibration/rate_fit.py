@@ -149,7 +149,8 @@ class SweepStats:
     asymmetry_fit: LinearFit | None
 
 
-def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.ndarray, gain: float, times=None):
+def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.ndarray, gain: float, times=None,
+                       flicker_tau2: float | None = None, flicker_tau2_dof: float | None = None):
     """[SEED003] eq. 4-6: K_n = max_j |F_j - (K w_j + F0)| / F_m over the sweep, F_m = |K| max|w| (full scale).
 
     Standard error: the standard deviation of the worst residual; noise floor: the 95 % quantile of the same
@@ -159,6 +160,13 @@ def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.n
     :func:`fit_core.flicker_covariance`),
     or, without that model, the sems times the fit's variance factor (the between-plateau scatter). With white
     sems alone the 95 % floor was exceeded by 13 % of linear sensors in the full-chain Monte Carlo.
+
+    ``flicker_tau2``/``flicker_tau2_dof``: the run's Allan 1/f level and its degrees of freedom, as the fit had
+    them. The level is then not the plateaus' REML alone but integrated over with that prior
+    (:func:`fit_core.flicker_gls`, posterior mean, [GELMAN2013] sec. 3.2): a REML over 9-23 plateaus with five
+    columns often puts tau^2 near 0 and the worst residual's sd then lacks the 1/f wander between plateaus
+    (consumer means-fit nonlinearity with injected nonlinearity, 60 runs: z sd 1.37 / 1.20 on quick_rate /
+    seed003_rate_sequence with the REML level, 0.98 / 1.10 with the true level). Without them: REML as before.
     """
     m = sweep & fit.used
     idx = np.flatnonzero(m)
@@ -182,7 +190,9 @@ def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.n
         scr = sweep_screen_columns(x, sweep)
         Xa = X if scr is None else np.column_stack([X, scr[used]])
         if np.linalg.matrix_rank(Xa) == Xa.shape[1] and len(used) > Xa.shape[1] + 2:
-            tau2 = flicker_gls(Xa, (fit.fitted + fit.residual)[used], sig, t_mid, t_len)[0]
+            given = flicker_tau2 is not None and flicker_tau2 > 0  # not FLICKER_UNDETECTED: then REML as before
+            tau2 = flicker_gls(Xa, (fit.fitted + fit.residual)[used], sig, t_mid, t_len,
+                               tau2=flicker_tau2 if given else None, prior_dof=flicker_tau2_dof if given else None)[0]
         else:
             tau2 = fit.flicker_tau2
     # between-plateau noise: the 1/f model when the fit has one, else the scatter's variance factor
