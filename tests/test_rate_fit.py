@@ -370,3 +370,35 @@ def test_means_fit_excludes_a_plateau_sitting_on_the_rail():
     assert {0, 1, 3} <= set(excluded) and "rail" in excluded[3]
     assert 4 not in excluded and 5 not in excluded
     assert at_rail(rate, mean, sem, {}) == {}
+
+
+def test_means_nonlinearity_stderr_uses_the_runs_flicker_level():
+    """The worst residual's standard deviation carries the 1/f wander between plateaus at the run's Allan level B
+    (given with its degrees of freedom), not at a REML level from the plateaus alone, which over a short sweep
+    often sits near 0 (consumer means-fit nonlinearity z sd 1.37 on quick_rate in the coverage harness; 0.97
+    with the run's level). Plateaus with white errors only here, so REML finds no 1/f level: without B the
+    stderr is the white one; with a well-determined B it must grow to the GLS residual sd at tau^2 = B^2 / pi."""
+    from assets_lib.calibration.fit_core import flicker_covariance
+
+    rng = np.random.default_rng(15)
+    mags = np.r_[1.0, 5, 20, 100, 200]
+    w = np.radians(np.r_[0.0, mags, -mags, 0.0])
+    s = 4e-5
+    t0 = np.arange(len(w)) * 30.0
+    y = 1e-3 + 1.01 * w + 2e-3 * np.radians(400.0) * (w / np.radians(400.0)) ** 3 + s * rng.standard_normal(len(w))
+    sem = np.full(len(w), s)
+    times = (t0, t0 + 17.0)
+    plain = fit_rate_means(w, y, sem, rate_unit="rad/s", times=times, exclusion="none").coefficient("nonlinearity")
+    b = 4 * s
+    given = fit_rate_means(w, y, sem, rate_unit="rad/s", times=times, exclusion="none", flicker_b=b,
+                           flicker_b_dof=1e6).coefficient("nonlinearity")
+    assert given.value == pytest.approx(plain.value, rel=0.2)
+    # expected: the residual sd of the GLS line at tau^2 = B^2 / pi, at the worst plateau
+    A = np.column_stack([np.ones(len(w)), w])
+    S = flicker_covariance(sem, t0 + 8.5, np.full(len(w), 17.0), b**2 / np.pi)
+    L = np.linalg.cholesky(S)
+    Q, _ = np.linalg.qr(np.linalg.solve(L, A))
+    sd = np.sqrt(np.sum((L - (L @ Q) @ Q.T) ** 2, axis=1))
+    fs = 1.01 * np.max(np.abs(w))
+    assert given.stderr > 1.5 * plain.stderr
+    assert np.min(sd) / fs * 1e6 * 0.8 < given.stderr < np.max(sd) / fs * 1e6 * 1.25

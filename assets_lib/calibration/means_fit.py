@@ -243,6 +243,7 @@ def fit_rate_means(
     sweep = np.ones(len(w), bool)
     note = compression_note(w, sweep, sat, sign_gain=np.sign(np.nanmedian(np.diff(y[np.argsort(w)])) or 1.0))
     tm = _plateau_times(times, len(w))
+    prior_tau2 = flicker_prior_tau2(flicker_b)
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
@@ -259,7 +260,8 @@ def fit_rate_means(
         coefs.append(_coef(fit, "bias_equivalent", be / fac, sbe / fac, rate_unit,
                            note="zero output expressed as input rate, U0/K"))
     nz = np.abs(w) > 0
-    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K, tm)
+    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K, tm, flicker_tau2=prior_tau2,
+                                                     flicker_tau2_dof=flicker_b_dof)
     ok = bool(np.isfinite(nl))  # the interval is clipped at zero: nonlinearity is a magnitude
     est = Coefficient(nl * 1e6, nls * 1e6, "ppm", ok, max(nl - 1.96 * nls, 0.0) * 1e6, (nl + 1.96 * nls) * 1e6)
     coefs.append(MeansCoefficient("nonlinearity", est,
