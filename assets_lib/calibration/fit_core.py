@@ -748,9 +748,20 @@ def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float |
     ok = (n >= 4) & (T > 0) & np.isfinite(sem2)
     if ok.sum() < 2:
         return None
-    n, T, sem2 = n[ok], T[ok], sem2[ok]
+    try:
+        vF = _flicker_floor_var(n[ok], T[ok], sem2[ok], F, F, max_cluster_fraction)
+    except np.linalg.LinAlgError:
+        return None
+    return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
+
+
+def _flicker_floor_var(n: np.ndarray, T: np.ndarray, sem2: np.ndarray, f_white: float, F: float,
+                       max_cluster_fraction: float) -> float:
+    """var(F_hat) of the pooled Allan floor at a true floor F: the inverse Fisher information of (white scale, F)
+    over the octaves taken as independent (:func:`flicker_b_dof`), the plateaus' white levels N_k^2 = (sem_k^2 -
+    f_white) T_k; raises ``np.linalg.LinAlgError`` when the information is singular."""
     dt = float(np.median(T / np.maximum(n - 1, 1)))
-    N2 = np.maximum(sem2 - F, 0.0) * T
+    N2 = np.maximum(sem2 - f_white, 0.0) * T
     caps = np.maximum(1, (max_cluster_fraction * n).astype(int))
     info = np.zeros((2, 2))
     for m in 2 ** np.arange(int(np.log2(caps.max())) + 1):
@@ -758,15 +769,10 @@ def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float |
         e = np.maximum(1.0, (n[sel] - 2 * m + 1) / m)
         E = e.sum()
         white = N2[sel] / (m * dt)
-        a_k = white + F
-        var = 2.0 * np.sum(e * a_k**2) / E**2
+        var = 2.0 * np.sum(e * (white + F) ** 2) / E**2
         J = np.array([np.sum(e * white) / E, 1.0])
         info += np.outer(J, J) / var
-    try:
-        vF = float(np.linalg.inv(info)[1, 1])
-    except np.linalg.LinAlgError:
-        return None
-    return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
+    return float(np.linalg.inv(info)[1, 1])
 
 
 #: the octave Allan variances of one window are correlated (overlapping clusters share samples), which the
@@ -796,20 +802,7 @@ class FlickerLaw:
     max_cluster_fraction: float = 0.5
 
     def var(self, F: float) -> float:
-        n, T = self.n, self.T
-        dt = float(np.median(T / np.maximum(n - 1, 1)))
-        N2 = np.maximum(self.sem2 - self.f_hat, 0.0) * T
-        caps = np.maximum(1, (self.max_cluster_fraction * n).astype(int))
-        info = np.zeros((2, 2))
-        for m in 2 ** np.arange(int(np.log2(caps.max())) + 1):
-            sel = caps >= m
-            e = np.maximum(1.0, (n[sel] - 2 * m + 1) / m)
-            E = e.sum()
-            white = N2[sel] / (m * dt)
-            var = 2.0 * np.sum(e * (white + F) ** 2) / E**2
-            J = np.array([np.sum(e * white) / E, 1.0])
-            info += np.outer(J, J) / var
-        return float(np.linalg.inv(info)[1, 1]) / FLICKER_DOF_EFFICIENCY
+        return _flicker_floor_var(self.n, self.T, self.sem2, self.f_hat, F, self.max_cluster_fraction) / FLICKER_DOF_EFFICIENCY
 
     @cached_property
     def resolution_tau2(self) -> float:
