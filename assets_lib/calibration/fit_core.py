@@ -735,24 +735,35 @@ def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float |
     2 sum_k e_km avar_km^2 / E_m^2 (e_km = (n_k - 2m + 1) / m, E_m = sum_k e_km); the Fisher information of
     (white scale, F) over the octaves (taken as independent) gives var(F_hat), nu = 2 F^2 / var(F_hat).
     None without the columns or an estimated B."""
+    got = _floor_inputs(p, channel, detected_only=True)
+    if got is None:
+        return None
+    b, n, T, sem2 = got
+    F = FLICKER_WHITE / np.pi * b**2
+    try:
+        vF = _flicker_floor_var(n, T, sem2, F, F, max_cluster_fraction)
+    except np.linalg.LinAlgError:
+        return None
+    return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
+
+
+def _floor_inputs(p, channel: str, detected_only: bool):
+    """(B, n_samples, length_s, sem^2) of a channel's usable plateaus (>= 4 samples, positive length, finite sem)
+    from a plateau table, or None without the columns, with fewer than two such plateaus, or with B missing
+    (negative or NaN; also zero when ``detected_only``)."""
     need = (f"{channel}_sem", f"{channel}_flicker_b", "n_samples", "t_start_s", "t_end_s")
     if any(c not in p for c in need) or not len(p):
         return None
     b = float(p[f"{channel}_flicker_b"].iloc[0])
-    if not np.isfinite(b) or b <= 0:
+    if not np.isfinite(b) or b < 0 or (detected_only and b == 0):
         return None
-    F = FLICKER_WHITE / np.pi * b**2
     n = p["n_samples"].to_numpy(float)
     T = (p["t_end_s"] - p["t_start_s"]).to_numpy(float)
     sem2 = p[f"{channel}_sem"].to_numpy(float) ** 2
     ok = (n >= 4) & (T > 0) & np.isfinite(sem2)
     if ok.sum() < 2:
         return None
-    try:
-        vF = _flicker_floor_var(n[ok], T[ok], sem2[ok], F, F, max_cluster_fraction)
-    except np.linalg.LinAlgError:
-        return None
-    return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
+    return b, n[ok], T[ok], sem2[ok]
 
 
 def _flicker_floor_var(n: np.ndarray, T: np.ndarray, sem2: np.ndarray, f_white: float, F: float,
@@ -829,19 +840,11 @@ class FlickerLaw:
 
 def flicker_law(p, channel: str, max_cluster_fraction: float = 0.5) -> FlickerLaw | None:
     """The :class:`FlickerLaw` of a channel's B from a plateau table, or None without the columns."""
-    need = (f"{channel}_sem", f"{channel}_flicker_b", "n_samples", "t_start_s", "t_end_s")
-    if any(c not in p for c in need) or not len(p):
+    got = _floor_inputs(p, channel, detected_only=False)
+    if got is None:
         return None
-    b = float(p[f"{channel}_flicker_b"].iloc[0])
-    if not np.isfinite(b) or b < 0:
-        return None
-    n = p["n_samples"].to_numpy(float)
-    T = (p["t_end_s"] - p["t_start_s"]).to_numpy(float)
-    sem2 = p[f"{channel}_sem"].to_numpy(float) ** 2
-    ok = (n >= 4) & (T > 0) & np.isfinite(sem2)
-    if ok.sum() < 2:
-        return None
-    law = FlickerLaw(FLICKER_WHITE / np.pi * b**2, n[ok], T[ok], sem2[ok], max_cluster_fraction)
+    b, n, T, sem2 = got
+    law = FlickerLaw(FLICKER_WHITE / np.pi * b**2, n, T, sem2, max_cluster_fraction)
     try:
         r = law.resolution_tau2
     except np.linalg.LinAlgError:
