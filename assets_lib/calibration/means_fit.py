@@ -247,7 +247,7 @@ def fit_rate_means(
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
-                     flicker_tau2=flicker_prior_tau2(flicker_b), flicker_tau2_dof=flicker_b_dof)
+                     flicker_tau2=prior_tau2, flicker_tau2_dof=flicker_b_dof)
     U0, sU0 = fit.get("zero_output")
     K, sK = fit.get("scale_factor")
     k = fit.names.index("scale_factor")
@@ -272,7 +272,7 @@ def fit_rate_means(
     # line's: a REML under the straight line reads an asymmetry's |w| misfit as 1/f noise (tau^2 up to 1e4x the
     # truth), which widened K+, K- and the asymmetry (z sd 0.55-0.65 with asymmetry injected, coverage 0.99)
     kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol,
-                                                      times=tm, flicker_tau2=flicker_prior_tau2(flicker_b))
+                                                      times=tm, flicker_tau2=prior_tau2)
     kk = fa.k95 if fa is not None else 1.96
     if fa is not None and np.isfinite(asym) and fa.observable[1]:
         # K = mean(K+, K-) from the hinge fit, as the rate fit reports it: on a symmetric sweep the straight line's

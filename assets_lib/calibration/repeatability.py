@@ -44,7 +44,8 @@ walk (K selected instead of R on the 82 s longest tau) and K extrapolated to T o
 non-negative estimate of an unresolved floor is biased up); unconstrained B (unbiased sigma_A^2(T), but its
 noise gave z sd 1.5-2.1 and clipped negative predictions, navigation coverage 0.68-0.75); power-cycled runs only,
 without the 1200 s record (gyro sd 1.105, navigation -0.14, extra_terms -0.21).
-The ``imulab repeatability`` command (:func:`static_run_terms`) still uses each run's own fit.
+The ``imulab repeatability`` command takes the same pooled standard errors (:func:`static_run_allan` per run,
+then :func:`pooled_bias_stderrs`); each run's N and B still come from its own fit (:func:`static_run_terms`).
 """
 
 from __future__ import annotations
