@@ -89,3 +89,91 @@ def test_fit_cli_errors_are_clear(tmp_path):
     assert r.exit_code != 0
     r = CliRunner().invoke(main, ["fit", "--help"])
     assert r.exit_code == 0 and "rate" in r.output and "tumble" in r.output
+
+
+def _rate_table_with_times(tmp_path, seed=5):
+    """A rate sweep tabulated as a lab would: commanded rate, plateau mean and sem, start/end times [s]; the output
+    carries a random-walk wander between plateaus (correlated noise the independent-plateau fit does not see)."""
+    rng = np.random.default_rng(seed)
+    rates = np.array([-100, -50, -20, -10, -5, 5, 10, 20, 50, 100, 0], float)
+    t0 = np.arange(rates.size) * 60.0
+    t1 = t0 + 40.0
+    wander = np.cumsum(rng.normal(0, 2e-4, rates.size))
+    sem = np.full(rates.size, 1e-4)
+    means = 0.2 + 0.05 * rates + wander + rng.normal(0, 1e-4, rates.size)
+    path = tmp_path / "rate_t.csv"
+    path.write_text("rate_dps,mean_V,sem_V,t0_s,t1_s\n" + "".join(
+        ",".join(repr(float(v)) for v in row) + "\n" for row in zip(rates, means, sem, t0, t1)))
+    return path, rates, means, sem, (t0, t1)
+
+
+def test_fit_rate_cli_times_and_flicker_level_are_the_scored_fit(tmp_path):
+    """With plateau times and the run's 1/f level (what the coverage benchmark scores as `imulab fit rate`), the
+    command prints exactly fit_rate_means' correlated-noise fit; without times it warns that the intervals leave
+    out the noise shared between plateaus."""
+    from assets_lib.calibration.fit_core import flicker_dof_from_interval
+    from assets_lib.calibration.means_fit import fit_rate_means
+
+    f, rates, means, sem, times = _rate_table_with_times(tmp_path)
+    common = ["fit", "rate", "--means", str(f), "--rate-column", "rate_dps", "--output-column", "mean_V",
+              "--sem-column", "sem_V"]
+    out = tmp_path / "t.json"
+    r = CliRunner().invoke(main, common + ["--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b", "3e-4",
+                                          "--flicker-b-dof", "12", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "taken as independent" not in r.output
+    d = json.loads(out.read_text())
+    assert d["correlated_noise"] is True and d["flicker_b_dof"] == 12
+    ref = fit_rate_means(rates, means, sem, output_unit="V", times=times, flicker_b=3e-4, flicker_b_dof=12.0)
+    got = {c["name"]: (c["value"], c["stderr"]) for c in d["coefficients"]}
+    for c in ref.coefficients:
+        if c.observable and np.isfinite(c.value):
+            assert np.isclose(got[c.name][0], c.value, rtol=1e-12), c.name
+            assert np.isclose(got[c.name][1], c.stderr, rtol=1e-12), c.name
+    # independent plateaus: a warning, and the zero output's interval lacks the wander
+    out2 = tmp_path / "i.json"
+    r2 = CliRunner().invoke(main, common + ["--json", str(out2)])
+    assert r2.exit_code == 0, r2.output
+    assert "warning: no plateau times" in r2.output and "too narrow" in r2.output
+    ind = {c["name"]: c["stderr"] for c in json.loads(out2.read_text())["coefficients"]}
+    assert got["zero_output"][1] > 1.5 * ind["zero_output"]
+    # B's interval as imulab allan prints it gives the degrees of freedom
+    out3 = tmp_path / "ci.json"
+    r3 = CliRunner().invoke(main, common + ["--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b", "3e-4",
+                                           "--flicker-b-ci", "2e-4", "5e-4", "--json", str(out3)])
+    assert r3.exit_code == 0, r3.output
+    assert np.isclose(json.loads(out3.read_text())["flicker_b_dof"], flicker_dof_from_interval(3e-4, 2e-4, 5e-4))
+
+
+def test_fit_cli_noise_options_fail_clearly(tmp_path):
+    f = _rate_table_with_times(tmp_path)[0]
+    base = ["fit", "rate", "--means", str(f), "--rate-column", "rate_dps", "--output-column", "mean_V"]
+    cases = [
+        (["--sem-column", "sem_V", "--start-column", "t0_s"], "go together"),
+        (["--start-column", "t0_s", "--end-column", "t1_s"], "--sem-column"),
+        (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "nope"], "no column 'nope'"),
+        (["--sem-column", "sem_V", "--flicker-b", "1e-4"], "needs the plateau times"),
+        (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b", "1e-4",
+          "--flicker-b-ci", "0", "2e-4"], "upper bound"),
+    ]
+    for extra, msg in cases:
+        r = CliRunner().invoke(main, base + extra)
+        assert r.exit_code != 0 and msg in r.output, (extra, r.output)
+
+
+def test_flicker_dof_from_interval_inverts_the_chi_square_interval():
+    from scipy import stats
+
+    from assets_lib.calibration.fit_core import flicker_dof_from_interval
+
+    for nu in (1.5, 4.0, 30.0, 800.0):
+        lo, hi = (np.sqrt(nu / stats.chi2.ppf(q, nu)) for q in (0.975, 0.025))
+        assert np.isclose(flicker_dof_from_interval(1.0, lo, hi), nu, rtol=1e-6)
+
+
+def test_fit_cli_names_a_cell_that_is_not_a_number(tmp_path):
+    f = tmp_path / "bad.csv"
+    f.write_text("rate,out\n-10,-0.3\n0,0.2\n10,oops\n20,1.2\n")
+    r = CliRunner().invoke(main, ["fit", "rate", "--means", str(f), "--rate-column", "rate", "--output-column", "out"])
+    assert r.exit_code != 0
+    assert "data row 3, column 'out'" in r.output and "'oops' is not a number" in r.output

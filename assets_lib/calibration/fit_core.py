@@ -747,6 +747,35 @@ def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float |
     return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
 
 
+def flicker_dof_from_interval(b: float, lo: float, hi: float, level: float = 0.95) -> float:
+    """Degrees of freedom nu of B^2 from B and its equal-tailed interval [lo, hi] at ``level``, with B_hat^2 ~
+    B^2 chi^2_nu / nu ([GELMAN2013] sec. 3.2, the law :func:`fit_linear` integrates tau^2 over): (hi / lo)^2 =
+    chi^2_nu(1 - a/2) / chi^2_nu(a/2), solved for nu (a profile-likelihood interval of an Allan fit, as
+    ``imulab allan`` prints, is read as if it were that interval). ValueError for an interval that is only a bound
+    (lo <= 0) or does not contain B."""
+    from scipy.optimize import brentq
+
+    b, lo, hi = float(b), float(lo), float(hi)
+    if not (np.isfinite(lo) and np.isfinite(hi) and lo > 0):
+        raise ValueError(f"interval [{lo:g}, {hi:g}] is an upper bound (lower end <= 0): B was not resolved; give "
+                         "B = 0 (not detected) or its degrees of freedom")
+    if not lo <= b <= hi or hi <= lo:
+        raise ValueError(f"interval [{lo:g}, {hi:g}] must contain B = {b:g} and have high > low")
+    a = 1.0 - level
+    target = 2.0 * np.log(hi / lo)
+
+    def gap(log_nu):
+        nu = np.exp(log_nu)
+        return float(np.log(stats.chi2.ppf(1 - a / 2, nu)) - np.log(stats.chi2.ppf(a / 2, nu))) - target
+
+    lo_nu, hi_nu = np.log(0.05), np.log(1e8)
+    if gap(hi_nu) > 0:
+        return 1e8
+    if gap(lo_nu) < 0:
+        return 0.05
+    return float(np.exp(brentq(gap, lo_nu, hi_nu, xtol=1e-10)))
+
+
 def _floor_inputs(p, channel: str, detected_only: bool):
     """(B, n_samples, length_s, sem^2) of a channel's usable plateaus (>= 4 samples, positive length, finite sem)
     from a plateau table, or None without the columns, with fewer than two such plateaus, or with B missing

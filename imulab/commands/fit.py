@@ -3,6 +3,14 @@
 \b
   imulab fit rate --means rate.csv --rate-unit deg/s --output-unit V
   imulab fit tumble --means tumble.csv --angle-unit deg --output-unit V --json tumble.json
+  imulab fit rate --means rate.csv --sem-column sem_V --start-column t0_s --end-column t1_s \\
+      --flicker-b 3e-4 --flicker-b-ci 2e-4 5e-4
+
+With each plateau's start and end time (and the sems) the fit models the 1/f (bias-instability) noise the plateaus
+share (correlated-noise GLS, fit_core.flicker_gls): its level from the plateaus by REML, or the run's B from an Allan
+analysis of the output (``imulab allan``) with its interval, integrated over. This is the fit the coverage benchmark
+scores as ``imulab fit rate`` / ``fit tumble``; without times the plateaus are independent and a warning says the
+intervals leave out the shared noise.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ import click
 import numpy as np
 import pandas as pd
 
+from assets_lib.calibration.fit_core import flicker_dof_from_interval
 from assets_lib.calibration.means_fit import ANGLE_UNITS_TO_RAD, EXCLUSION_MODES, MeansFit, fit_rate_means, fit_tumble_means
 from raw_schemas.units import GYRO_UNITS_TO_RADPS
 
@@ -39,12 +48,69 @@ def _read(path: Path, in_col: str | None, out_col: str | None, sem_col: str | No
             if not rest:
                 raise click.ClickException(f"{path}: no numeric column for the mean output; columns are {list(df.columns)}")
             out_col = rest.pop(0)
-    x = pd.to_numeric(df[in_col], errors="coerce").to_numpy(float)
-    y = pd.to_numeric(df[out_col], errors="coerce").to_numpy(float)
-    s = pd.to_numeric(df[sem_col], errors="coerce").to_numpy(float) if sem_col else None
+    x, y = _numbers(path, df, in_col), _numbers(path, df, out_col)
+    s = _numbers(path, df, sem_col) if sem_col else None
     if len(x) < 3:
         raise click.ClickException(f"{path}: need at least 3 rows, found {len(x)}")
-    return x, y, s, in_col, out_col
+    return x, y, s, in_col, out_col, df
+
+
+def _numbers(path: Path, df: pd.DataFrame, col: str) -> np.ndarray:
+    """A column as floats; a non-empty cell that is not a number is an error naming its row (empty cells: NaN, the
+    fit then excludes that plateau and says why)."""
+    v = pd.to_numeric(df[col], errors="coerce")
+    bad = np.flatnonzero(v.isna().to_numpy() & df[col].notna().to_numpy()
+                         & (df[col].astype(str).str.strip() != "").to_numpy())
+    if bad.size:
+        raise click.ClickException(f"{path}: data row {int(bad[0]) + 1}, column {col!r}: {df[col].iloc[bad[0]]!r} is "
+                                   f"not a number ({bad.size} such cells in that column)")
+    return v.to_numpy(float)
+
+
+def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker_b, flicker_b_dof, flicker_b_ci):
+    """(times, flicker_b, flicker_b_dof, warnings) for the correlated-noise fit from the options (module doc)."""
+    if (start_col is None) != (end_col is None):
+        raise click.ClickException("--start-column and --end-column go together (each plateau's start and end time, s)")
+    if flicker_b_dof is not None and flicker_b_ci is not None:
+        raise click.ClickException("give B's degrees of freedom (--flicker-b-dof) or its interval (--flicker-b-ci), "
+                                   "not both")
+    if (flicker_b_dof is not None or flicker_b_ci is not None) and flicker_b is None:
+        raise click.ClickException("--flicker-b-dof / --flicker-b-ci need --flicker-b")
+    notes = []
+    times = None
+    if start_col is not None:
+        if sem is None:
+            raise click.ClickException("--start-column/--end-column model the 1/f noise shared between plateaus: "
+                                       "they need the standard errors of the means (--sem-column)")
+        for c in (start_col, end_col):
+            if c not in df.columns:
+                raise click.ClickException(f"{path}: no column {c!r} for the plateau times; columns are "
+                                           f"{list(df.columns)}")
+        times = tuple(_numbers(path, df, c) for c in (start_col, end_col))
+        bad = np.flatnonzero(~np.isfinite(times[0]) | ~np.isfinite(times[1]) | (times[1] < times[0]))
+        if bad.size:
+            raise click.ClickException(f"{path}: data row {int(bad[0]) + 1}: plateau times {start_col!r}, "
+                                       f"{end_col!r} must be numbers (s) with end >= start")
+    elif sem is not None:
+        notes.append("no plateau times (--start-column/--end-column): the plateaus are taken as independent, so "
+                     "the 1/f (bias-instability) noise they share is not in the intervals, which are then too narrow "
+                     "for a sensor whose bias wanders between plateaus")
+    if flicker_b is not None and times is None:
+        raise click.ClickException("--flicker-b needs the plateau times (--start-column/--end-column)")
+    if flicker_b is not None and not (np.isfinite(flicker_b) and flicker_b >= 0):
+        raise click.ClickException(f"--flicker-b must be >= 0 (0: looked for and not detected), not {flicker_b}")
+    if flicker_b_ci is not None:
+        lo, hi = flicker_b_ci
+        try:
+            flicker_b_dof = flicker_dof_from_interval(flicker_b, lo, hi)
+        except ValueError as e:
+            raise click.ClickException(f"--flicker-b-ci: {e}") from None
+    return times, flicker_b, flicker_b_dof, notes
+
+
+def _noise_json(times, b, b_dof, notes) -> dict:
+    return {"correlated_noise": times is not None, "flicker_b": b, "flicker_b_dof": b_dof,
+            "input_warnings": list(notes)}
 
 
 def _fmt(v: float) -> str:
@@ -53,7 +119,7 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}"
 
 
-def _print(res: MeansFit, header: str):
+def _print(res: MeansFit, header: str, input_warnings=()):
     click.echo(header)
     click.echo(f"points {res.n_points}, used {res.n_used}, dof {res.dof}, residual RMS {_fmt(res.residual_rms)} "
                f"{res.output_unit}, uncertainty from {res.cov_policy!r}")
@@ -77,7 +143,7 @@ def _print(res: MeansFit, header: str):
                        f"{res.output_unit}: {e.reason}")
     else:
         click.echo("excluded points: none")
-    for wmsg in res.warnings:
+    for wmsg in (*res.warnings, *input_warnings):
         click.echo(f"warning: {wmsg}")
 
 
@@ -124,6 +190,19 @@ _common = [
     click.option("--output-unit", default="V", show_default=True, help="Unit of the mean output (free text: V, counts...)."),
     click.option("--output-column", default=None, help="Column of the mean output (default: the second numeric column)."),
     click.option("--sem-column", default=None, help="Optional column of standard errors of the means."),
+    click.option("--start-column", default=None,
+                 help="Column of each plateau's start time [s] (with --end-column and --sem-column): the 1/f noise "
+                      "shared between plateaus enters the intervals (correlated-noise GLS, level by REML or "
+                      "--flicker-b)."),
+    click.option("--end-column", default=None, help="Column of each plateau's end time [s]."),
+    click.option("--flicker-b", type=float, default=None,
+                 help="The run's 1/f level B (bias instability) in the output unit, from an Allan analysis of the "
+                      "output (imulab allan); 0 = looked for, not detected. Without it the plateaus' REML sets it."),
+    click.option("--flicker-b-dof", type=float, default=None,
+                 help="Degrees of freedom of B^2 (default: B taken as exact); or give --flicker-b-ci."),
+    click.option("--flicker-b-ci", type=float, nargs=2, default=None,
+                 help="B's 95 %% interval LOW HIGH as imulab allan prints it: its degrees of freedom are read "
+                      "from it (B^2 as a scaled chi-square)."),
     click.option("--exclusion", type=click.Choice(EXCLUSION_MODES), default="auto", show_default=True,
                  help="auto: saturation (flat tops and plateaus at the rail) + Bonferroni outlier test; "
                       "saturation: no outlier test; flat-top: only plateaus whose output stopped following the "
@@ -149,13 +228,18 @@ def command():
 @_with_common
 @click.option("--rate-unit", type=click.Choice(sorted(GYRO_UNITS_TO_RADPS)), default="deg/s", show_default=True)
 @click.option("--rate-column", default=None, help="Column of the commanded rate (default: the first numeric column).")
-def rate_cmd(means, output_unit, output_column, sem_column, exclusion, alpha, json_path, plot_path, rate_unit, rate_column):
+def rate_cmd(means, output_unit, output_column, sem_column, start_column, end_column, flicker_b, flicker_b_dof,
+             flicker_b_ci, exclusion, alpha, json_path, plot_path, rate_unit, rate_column):
     """Seed 001 eq. 1-3: U = U0 + K w with nonlinearity, asymmetry and automatic exclusions."""
-    x, y, s, ic, oc = _read(means, rate_column, output_column, sem_column, "commanded rate")
-    res = fit_rate_means(x, y, s, rate_unit=rate_unit, output_unit=output_unit, exclusion=exclusion, alpha=alpha)
-    _print(res, f"rate fit of {means} (rate column {ic!r} in {rate_unit}, output column {oc!r} in {output_unit})")
+    x, y, s, ic, oc, df = _read(means, rate_column, output_column, sem_column, "commanded rate")
+    times, b, b_dof, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
+                                           flicker_b_ci)
+    res = fit_rate_means(x, y, s, rate_unit=rate_unit, output_unit=output_unit, exclusion=exclusion, alpha=alpha,
+                         times=times, flicker_b=b, flicker_b_dof=b_dof)
+    _print(res, f"rate fit of {means} (rate column {ic!r} in {rate_unit}, output column {oc!r} in {output_unit})",
+           notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
-                                 "alpha": alpha, "model": "U = U0 + K w"})
+                                 "alpha": alpha, "model": "U = U0 + K w", **_noise_json(times, b, b_dof, notes)})
     _plot(res, plot_path, f"commanded rate [{rate_unit}]")
 
 
@@ -165,16 +249,20 @@ def rate_cmd(means, output_unit, output_column, sem_column, exclusion, alpha, js
 @click.option("--angle-column", default=None, help="Column of the table angle (default: the first numeric column).")
 @click.option("--misalignment-term/--no-misalignment-term", default=False, show_default=True,
               help="Add the IEEE 1293 cos(theta) misalignment term to seed 001's model.")
-def tumble_cmd(means, output_unit, output_column, sem_column, exclusion, alpha, json_path, plot_path, angle_unit,
-               angle_column, misalignment_term):
+def tumble_cmd(means, output_unit, output_column, sem_column, start_column, end_column, flicker_b, flicker_b_dof,
+               flicker_b_ci, exclusion, alpha, json_path, plot_path, angle_unit, angle_column, misalignment_term):
     """Seed 001 eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos (a_i = sin(theta) g)."""
-    x, y, s, ic, oc = _read(means, angle_column, output_column, sem_column, "table angle")
+    x, y, s, ic, oc, df = _read(means, angle_column, output_column, sem_column, "table angle")
+    times, b, b_dof, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
+                                           flicker_b_ci)
     res = fit_tumble_means(x, y, s, angle_unit=angle_unit, output_unit=output_unit, misalignment_term=misalignment_term,
-                           exclusion=exclusion, alpha=alpha)
-    _print(res, f"tumble fit of {means} (angle column {ic!r} in {angle_unit}, output column {oc!r} in {output_unit})")
+                           exclusion=exclusion, alpha=alpha, times=times, flicker_b=b, flicker_b_dof=b_dof)
+    _print(res, f"tumble fit of {means} (angle column {ic!r} in {angle_unit}, output column {oc!r} in {output_unit})",
+           notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
                                  "alpha": alpha, "model": "U = K0 + K1 sin + K2 sin^2 + K3 sin cos"
-                                 + (" + d cos" if misalignment_term else "")})
+                                 + (" + d cos" if misalignment_term else ""),
+                                 **_noise_json(times, b, b_dof, notes)})
     _plot(res, plot_path, f"table angle [{angle_unit}]")
 
 
