@@ -16,7 +16,6 @@ intervals leave out the shared noise.
 from __future__ import annotations
 
 import json
-
 from pathlib import Path
 
 import click
@@ -24,7 +23,13 @@ import numpy as np
 import pandas as pd
 
 from assets_lib.calibration.fit_core import flicker_dof_from_interval
-from assets_lib.calibration.means_fit import ANGLE_UNITS_TO_RAD, EXCLUSION_MODES, MeansFit, fit_rate_means, fit_tumble_means
+from assets_lib.calibration.means_fit import (
+    ANGLE_UNITS_TO_RAD,
+    EXCLUSION_MODES,
+    MeansFit,
+    fit_rate_means,
+    fit_tumble_means,
+)
 from raw_schemas.units import GYRO_UNITS_TO_RADPS
 
 
