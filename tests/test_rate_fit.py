@@ -357,19 +357,49 @@ def test_means_fit_excludes_a_plateau_sitting_on_the_rail():
     plateaus (within a few sems) has clipped samples and is excluded, even when a genuine nonlinearity bends the
     sweep so that the straight-line rail test misses it. The table is the coverage benchmark's seed 602, trial 1094,
     z axis (consumer gyro, rail 250 deg/s, injected nonlinearity; true output at -250 deg/s: -250.324; z was -14.5)."""
-    from assets_lib.calibration.means_fit import at_rail, fit_rate_means
-    from assets_lib.calibration.saturation import detect_saturation
+    from assets_lib.calibration.means_fit import fit_rate_means
+    from assets_lib.calibration.saturation import at_rail, detect_saturation
 
     rate = np.array([400, -400, 250, -250, 100, -100, 20, -20, 5, -5, 1, -1, 0], float)
     mean = np.array([250.0, -250.0, 249.9991, -250.0, 100.3193, -99.7376, 20.3773, -19.6336, 5.3695, -4.6291, 1.3724,
                      -0.6360, 0.3649])
     sem = np.array([0.0015] * 4 + [0.0020] * 2 + [0.0019] * 7)
-    assert 3 not in detect_saturation(rate, mean, sem)  # the line test alone keeps the railed plateau
+    # the straight-line test misses it (the nonlinearity bends the sweep); the level test inside detect_saturation
+    # flags it by its distance to the flat tops' level
+    assert "the mean" in detect_saturation(rate, mean, sem)[3]  # the level test, not the line test
     fit = fit_rate_means(rate, mean, sem, rate_unit="deg/s", output_unit="deg/s")
     excluded = {e.row: e.reason for e in fit.excluded}
     assert {0, 1, 3} <= set(excluded) and "rail" in excluded[3]
     assert 4 not in excluded and 5 not in excluded
     assert at_rail(rate, mean, sem, {}) == {}
+
+
+def test_means_fit_excludes_a_plateau_pinned_at_the_rail_to_round_off():
+    """A plateau whose every sample sits at the rail code: its mean differs from the flat top's by a few ulp and
+    its sem is round-off (~1e-17), so "within 5 sems of the rail" alone kept it. The table is the coverage
+    benchmark's seed 40961, trial 281, z axis (consumer gyro, rail 250 deg/s, injected nonlinearity): the 250 deg/s
+    plateau kept at the rail made the nonlinearity 1142 ppm against 1965 (z -37.7)."""
+    from assets_lib.calibration.means_fit import fit_rate_means
+    from assets_lib.calibration.saturation import at_rail
+
+    rail = 4.363323129985824  # 250 deg/s in rad/s
+    rate = np.radians([400.0, -400, 250, -250, 100, -100, 80, -80, 60, -60, 40, -40, 20, -20, 10, -10, 0])
+    mean = np.array([rail, -rail, rail + 3 * np.spacing(rail), -4.357858, 1.742213, -1.742806, 1.393255, -1.394606,
+                     1.044254, -1.046377, 0.695708, -0.697977, 0.347151, -0.349727, 0.172823, -0.175624, -0.001389])
+    sem = np.r_[1.14e-17, 1.11e-17, 1.18e-17, np.full(14, 3.6e-5)]
+    flagged = at_rail(rate, mean, sem, {0: "flat top", 1: "flat top"})
+    assert set(flagged) == {2} and "round-off" in flagged[2]
+    fit = fit_rate_means(rate, mean, sem, rate_unit="rad/s", output_unit="rad/s")
+    excluded = {e.row for e in fit.excluded}
+    assert {0, 1, 2} <= excluded and 3 not in excluded
+    # the pipeline's rate fit (sample standard deviations given, sem * sqrt(n)): the line test misses the pinned
+    # plateau (its own sample sd is round-off), the level test inside detect_saturation flags it
+    from assets_lib.calibration.saturation import detect_saturation
+
+    sat = detect_saturation(rate, mean, sem, sample_sigma=sem * np.sqrt(576.0))
+    assert {0, 1, 2} <= set(sat) and "round-off" in sat[2] and 3 not in sat
+    # one ulp step of a mean that is NOT at the rail stays: the round-off tolerance is ulps, not a relative band
+    assert at_rail(rate, np.r_[mean[:2], rail * (1 - 1e-9), mean[3:]], sem, {0: "", 1: ""}) == {}
 
 
 def test_means_nonlinearity_stderr_uses_the_runs_flicker_level():

@@ -155,44 +155,6 @@ def _plateau_times(times, n: int):
     return 0.5 * (a + b), b - a
 
 
-#: a plateau whose mean lies within this many standard errors of a flat-top plateau's level sits at the rail
-RAIL_SEMS = 5.0
-
-
-def at_rail(x, y, sem, saturated: dict[int, str], *, n_sem: float = RAIL_SEMS, x_unit: str = "",
-            x_factor: float = 1.0) -> dict[int, str]:
-    """Plateaus at the rail of a plateau-means table: once a side of the sweep has saturated plateaus (their level is
-    the rail), an unflagged plateau of that side whose mean lies within ``n_sem`` standard errors of the rail has
-    clipped samples (its sample scatter is at least its sem), so its mean is biased towards the rail.
-
-    The straight-line rail test of :func:`~assets_lib.calibration.saturation.detect_saturation` needs each
-    plateau's sample standard deviation, which a table of means does not carry, and a line: under a genuine
-    nonlinearity of the sensor the line misses the end plateaus by more than the noise. Without this test a
-    consumer gyro with injected nonlinearity kept a -250 deg/s plateau sitting on the -250 deg/s rail (true output
-    -250.32): means-fit nonlinearity z -14.5 in the coverage benchmark (seed 602, trial 1094).
-    """
-    out: dict[int, str] = {}
-    if sem is None or not saturated:
-        return out
-    x, y, sem = (np.asarray(v, float) for v in (x, y, sem))
-    mid = float(np.nanmedian(y))
-    for side in (1.0, -1.0):
-        rails = [r for r in saturated if np.sign(y[r] - mid) == side]
-        if not rails:
-            continue
-        level = float(np.median(y[rails]))
-        s_rail = float(np.median(sem[rails]))
-        for k in np.flatnonzero(np.isfinite(y) & np.isfinite(sem) & (np.sign(y - mid) == side)):
-            if int(k) in saturated:
-                continue
-            d = abs(y[k] - level)
-            if d <= n_sem * np.hypot(sem[k], s_rail):
-                out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean lies "
-                               f"{d / np.hypot(sem[k], s_rail):.1f} standard errors from the rail set by the "
-                               f"saturated plateau(s) ({level:.6g}): clipped samples bias the mean")
-    return out
-
-
 def fit_rate_means(
     rate,
     output,
@@ -235,8 +197,6 @@ def fit_rate_means(
     sat: dict[int, str] = {}
     if exclusion != "none":
         sat = detect_saturation(w, y, sig, x_unit=rate_unit, x_factor=1 / fac, rail=exclusion != "flat-top")
-        if exclusion != "flat-top":
-            sat.update(at_rail(w, y, sig, sat, x_unit=rate_unit, x_factor=1 / fac))
     A = np.column_stack([np.ones(len(w)), w])
     names = ("zero_output", "scale_factor")
     scales = np.array([1.0, max(np.nanmax(np.abs(w)), 1e-300)])

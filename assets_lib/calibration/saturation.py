@@ -129,4 +129,61 @@ def detect_saturation(
                         )
                     else:
                         break
+        if sigma is not None:  # level test: plateaus whose mean sits on the rail (at_rail's docstring)
+            sem_all = np.full(len(x), np.nan)
+            sem_all[idx] = np.asarray(sigma, float)[idx]
+            tops = {int(idx[j]): "" for flagged in ends for j, *_ in flagged}  # the rail's level: flat tops only
+            for k, why in at_rail(x, y, sem_all, tops, x_unit=x_unit, x_factor=x_factor).items():
+                if k not in out and len(out) < max_flag:
+                    out[k] = why
+    return out
+
+
+#: a plateau whose mean lies within this many standard errors of a flat-top plateau's level sits at the rail
+RAIL_SEMS = 5.0
+#: ... or within this many units in the last place of the level: a plateau whose every sample sits at the rail code
+#: has a mean that differs from the rail's by a few ulp (the sums of different sample counts round differently) and a
+#: sem of ~1e-17 (round-off), so "within 5 sems" alone missed it (coverage benchmark seed 40961, trials 281 and
+#: 1457: a consumer gyro's 250 deg/s plateau pinned at the 250 deg/s rail, 3 ulp from the flat top's mean, kept;
+#: means-fit nonlinearity z -37.7 and -17.8)
+RAIL_ULPS = 64
+
+
+def at_rail(x, y, sem, saturated: dict[int, str], *, n_sem: float = RAIL_SEMS, x_unit: str = "",
+            x_factor: float = 1.0) -> dict[int, str]:
+    """Plateaus at the rail of a plateau-means table: once a side of the sweep has saturated plateaus (their level is
+    the rail), an unflagged plateau of that side whose mean lies within ``n_sem`` standard errors of the rail has
+    clipped samples (its sample scatter is at least its sem), so its mean is biased towards the rail.
+
+    The straight-line rail test of :func:`detect_saturation` needs each plateau's sample standard deviation,
+    which a table of means does not carry, and a line: under a genuine nonlinearity of the sensor the line misses
+    the end plateaus by more than the noise, and a plateau whose every sample is clipped has a sample standard
+    deviation of round-off, so "within 3 of them" fails too. Without this test a consumer gyro with injected
+    nonlinearity kept a -250 deg/s plateau sitting on the -250 deg/s rail (true output -250.32): means-fit
+    nonlinearity z -14.5 in the coverage benchmark (seed 602, trial 1094); the rate fit kept a 250 deg/s plateau
+    pinned at the rail (seed 40961, trial 281). :func:`detect_saturation` applies it after its line test.
+    """
+    out: dict[int, str] = {}
+    if sem is None or not saturated:
+        return out
+    x, y, sem = (np.asarray(v, float) for v in (x, y, sem))
+    mid = float(np.nanmedian(y))
+    for side in (1.0, -1.0):
+        rails = [r for r in saturated if np.sign(y[r] - mid) == side]
+        if not rails:
+            continue
+        level = float(np.median(y[rails]))
+        s_rail = float(np.median(sem[rails]))
+        for k in np.flatnonzero(np.isfinite(y) & np.isfinite(sem) & (np.sign(y - mid) == side)):
+            if int(k) in saturated:
+                continue
+            d = abs(y[k] - level)
+            roundoff = RAIL_ULPS * float(np.spacing(max(abs(level), abs(y[k]))))
+            if d <= roundoff:
+                out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean equals the rail set "
+                               f"by the saturated plateau(s) ({level:.6g}) to round-off: its samples sit at the rail")
+            elif d <= n_sem * np.hypot(sem[k], s_rail):
+                out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean lies "
+                               f"{d / np.hypot(sem[k], s_rail):.1f} standard errors from the rail set by the "
+                               f"saturated plateau(s) ({level:.6g}): clipped samples bias the mean")
     return out
