@@ -17,8 +17,9 @@ stderr. Also scored, from the same result objects:
   table): scale factor and misalignment, normal 95 % intervals;
 - ``imulab fit rate`` (``fit_rate_means``, seed 001's plateau-means fit) on each axis' sweep tabulated as a lab
   would (one mounting: the sweep's rate plateaus and the zero-rate plateaus in the same orientation; table rate,
-  plateau mean and sem, plateau start/end times and the run's 1/f level B for the correlated-noise model):
-  scale factor, K+, K-, asymmetry;
+  plateau mean and sem, plateau start/end times and the run's 1/f level B for the correlated-noise model, the
+  command's ``--sem-column --start-column --end-column --flicker-b --flicker-b-dof``): scale factor, K+, K-,
+  asymmetry;
 - the nonlinearity statistic (max |residual| / full scale, rate fit and means fit) at zero: on linear sensors
   (trials with neither asymmetry nor nonlinearity injected) the fraction of fits whose statistic stays below the
   printed 95 % noise floor is the floor's coverage (target 95 %), families ``*nonlinearity_below_floor``;
