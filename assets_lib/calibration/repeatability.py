@@ -297,12 +297,9 @@ def pooled_bias_stderrs(runs: pd.DataFrame, allan_by_run: dict, nonnegative: boo
         fit = fit_pooled_curves(*zip(*curves), nonnegative=nonnegative, keep_flicker=keep_flicker)
         t = g["duration_s"].to_numpy(float)
         avar, dof = fit.avar_dof(t, terms=NOISE_TERMS)
-        gbar = np.column_stack([3.0 / t**2, 1.0 / t, np.ones_like(t), t / 3.0, 0.0 * t]).mean(axis=0)
-        var_mean = float(gbar @ fit.theta_cov @ gbar)
         out.loc[g.index, "bias_stderr"] = np.sqrt(np.maximum(avar, 0.0))
         out.loc[g.index, "bias_stderr_dof"] = dof
-        out.loc[g.index, "bias_stderr_mean_dof"] = (2.0 * float(np.mean(avar)) ** 2 / var_mean if var_mean > 0
-                                                    else np.inf)
+        out.loc[g.index, "bias_stderr_mean_dof"] = fit.mean_avar_dof(t, terms=NOISE_TERMS)
         out.loc[g.index, "bias_stderr_model"] = "pooled"
     return out
 

@@ -11,6 +11,8 @@ standard errors are computed in.
 
 from __future__ import annotations
 
+import itertools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,17 +116,22 @@ def _design(tau: np.ndarray) -> np.ndarray:
 
 
 def _select_terms(a_mat: np.ndarray, y: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, dict]:
-    """Q and N always, B and K each when it lowers chi^2 by more than ``MODEL_PENALTY``: (selected theta, all fits)."""
+    """Q and N (columns 0, 1) always, each further column of ``a_mat`` (B, K, and R when present) when it lowers
+    chi^2 by more than ``MODEL_PENALTY``; every subset is fitted, smaller subsets first (the first minimum wins):
+    (selected theta, {columns: theta} of every subset)."""
+    optional = range(2, a_mat.shape[1])
     best = None
     fits = {}
-    for cols in ((0, 1), (0, 1, 2), (0, 1, 3), (0, 1, 2, 3)):
-        coef, chi2 = _irls_nnls(a_mat[:, cols], y, w)
-        score = chi2 + MODEL_PENALTY * (len(cols) - 2)
-        full = np.zeros(4)
-        full[list(cols)] = coef
-        fits[cols] = full
-        if best is None or score < best[0]:
-            best = (score, full)
+    for n_extra in range(len(optional) + 1):
+        for extra in itertools.combinations(optional, n_extra):
+            cols = (0, 1) + extra
+            coef, chi2 = _irls_nnls(a_mat[:, cols], y, w)
+            score = chi2 + MODEL_PENALTY * len(extra)
+            full = np.zeros(a_mat.shape[1])
+            full[list(cols)] = coef
+            fits[cols] = full
+            if best is None or score < best[0]:
+                best = (score, full)
     return best[1], fits
 
 
@@ -140,16 +147,27 @@ class PooledCurveFit:
     selected: tuple[bool, bool, bool]  # (B, K, R) admitted by the MODEL_PENALTY selection
     n_records: int
 
+    def _gradient(self, tau_s, terms) -> np.ndarray:
+        g = _design5(np.atleast_1d(np.asarray(tau_s, dtype=float)))
+        g[:, [j for j in range(5) if j not in terms]] = 0.0
+        return g
+
     def avar_dof(self, tau_s, terms=(0, 1, 2, 3, 4)) -> tuple[np.ndarray, np.ndarray]:
         """[IEEE952] eq. C.23 at ``tau_s`` from the ``terms`` (indices into theta) and its degrees of freedom
         2 sigma^4 / (g' C g) (Satterthwaite; inf when the covariance gives it no variance)."""
-        g = _design5(np.atleast_1d(np.asarray(tau_s, dtype=float)))
-        g[:, [j for j in range(5) if j not in terms]] = 0.0
+        g = self._gradient(tau_s, terms)
         a = g @ self.theta
         var = np.einsum("ij,jk,ik->i", g, self.theta_cov, g)
         with np.errstate(divide="ignore", invalid="ignore"):
             dof = np.where(var > 0, 2.0 * a**2 / var, np.inf)
         return a, dof
+
+    def mean_avar_dof(self, tau_s, terms=(0, 1, 2, 3, 4)) -> float:
+        """Degrees of freedom of the mean over ``tau_s`` of the model AVAR (one fit's estimates, fully dependent:
+        2 mean^2 / (gbar' C gbar), not a Satterthwaite sum over the taus; inf without variance)."""
+        g = self._gradient(tau_s, terms).mean(axis=0)
+        var = float(g @ self.theta_cov @ g)
+        return 2.0 * float(g @ self.theta) ** 2 / var if var > 0 else np.inf
 
 
 def _design5(tau: np.ndarray) -> np.ndarray:
@@ -184,16 +202,7 @@ def fit_pooled_curves(tau_s, avar, edf, nonnegative: bool = True, keep_flicker: 
     tau, y, e_sum = grid[use], num[use] / den[use], den[use]
     a_mat = _design5(tau)
     w = np.sqrt(e_sum)
-    best = None
-    for extra in ((), (2,), (3,), (4,), (2, 3), (2, 4), (3, 4), (2, 3, 4)):
-        cols = (0, 1) + extra
-        coef, chi2 = _irls_nnls(a_mat[:, cols], y, w)
-        score = chi2 + MODEL_PENALTY * len(extra)
-        full = np.zeros(5)
-        full[list(cols)] = coef
-        if best is None or score < best[0]:
-            best = (score, full)
-    sel = best[1]
+    sel = _select_terms(a_mat, y, w)[0]
     cols = [0, 1] + [j for j in (2, 3, 4) if sel[j] > 0 or (j == 2 and keep_flicker)]
     if nonnegative:  # B kept, every term >= 0 (NNLS); the covariance over the terms off the boundary
         coef, _ = _irls_nnls(a_mat[:, cols], y, w)
