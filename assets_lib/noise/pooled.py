@@ -12,7 +12,6 @@ standard errors are computed in.
 from __future__ import annotations
 
 import itertools
-
 from dataclasses import dataclass
 
 import numpy as np
