@@ -192,6 +192,72 @@ def test_imu_tk_mismatched_time_is_reported(tmp_path):
         import_run("imu_tk", [bad, gyr], tmp_path / "land", RunMeta("d", "r"), {})
 
 
+def _imu_tk_offset_files(tmp_path: Path, zero=32768, acc_lsb=0.0024, gyro_lsb=0.00021):
+    """A tiny imu_tk session in unsigned counts: 3 static poses (gravity along +z, -x, +y) and a 0.5 rad/s turn,
+    written as ``zero + round(value / lsb)``; returns the files and the values the counts stand for."""
+    n = 60
+    t = 0.01 * np.arange(1, 3 * n + 1)
+    f = np.repeat([[0.0, 0.0, 9.81], [-9.81, 0.0, 0.0], [0.0, 9.81, 0.0]], n, axis=0)
+    w = np.zeros_like(f)
+    w[n:2 * n, 1] = 0.5
+    acc_counts, gyro_counts = np.round(f / acc_lsb), np.round(w / gyro_lsb)
+    acc, gyr = tmp_path / "acc.txt", tmp_path / "gyro.txt"
+    np.savetxt(acc, np.c_[t, zero + acc_counts], fmt=["%.2f", "%d", "%d", "%d"])
+    np.savetxt(gyr, np.c_[t, zero + gyro_counts], fmt=["%.2f", "%d", "%d", "%d"])
+    return acc, gyr, acc_counts * acc_lsb, gyro_counts * gyro_lsb
+
+
+def test_imu_tk_zero_count_is_removed_before_scaling(tmp_path):
+    import warnings
+
+    from raw_schemas.importers import ImportedDataWarning
+
+    acc, gyr, f_si, w_si = _imu_tk_offset_files(tmp_path)
+    opts = {"accel_lsb": "0.0024", "gyro_lsb": "0.00021", "accel_zero_count": "32768", "gyro_zero_count": "32768"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ImportedDataWarning)  # the right zero and lsb: no warning
+        run = ingest_run(import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "zeroed"), opts))
+    np.testing.assert_allclose(run.imu[["accel_x_mps2", "accel_y_mps2", "accel_z_mps2"]].to_numpy(), f_si, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(run.imu[["gyro_x_radps", "gyro_y_radps", "gyro_z_radps"]].to_numpy(), w_si, rtol=0, atol=1e-12)
+    mag = np.linalg.norm(run.imu[["accel_x_mps2", "accel_y_mps2", "accel_z_mps2"]].to_numpy(), axis=1)
+    assert np.all(np.abs(mag - 9.81) < 0.0024)  # 1 g within one count
+    assert "accel zero count 32768 subtracted" in run.manifest.notes
+
+    # the same counts without the zero: written (counts are counts) but the import says what is wrong, naming the file
+    with pytest.warns(ImportedDataWarning) as rec:
+        import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "raw"), {"accel_lsb": "0.0024", "gyro_lsb": "0.00021"})
+    msgs = [str(w.message) for w in rec if issubclass(w.category, ImportedDataWarning)]
+    acc_msg = next(m for m in msgs if m.startswith("acc.txt:"))
+    med = float(np.median(np.linalg.norm(np.loadtxt(acc)[:, 1:] * 0.0024, axis=1)))  # what the run now holds
+    assert 10 < med / 9.80665 < 20  # ~14 g: the mid-scale offset, not gravity
+    assert f"median specific force |f| of the record is {med:.4g} m/s^2 ({med / 9.80665:.3g} g)" in acc_msg
+    assert "-o accel_zero_count=N" in acc_msg
+    gyro_msg = next(m for m in msgs if m.startswith("gyro.txt:"))
+    assert "median angular rate" in gyro_msg and "gyro_zero_count" in gyro_msg
+
+    # a wrong lsb with the right zero is caught too (the lsb declared in g: 9.81 g), and a zero count on physical
+    # values is refused
+    with pytest.warns(ImportedDataWarning, match=r"acc.txt: .*\(9.81 g\).*accel_lsb \(given 0.0024 g\)"):
+        import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "badlsb"), {**opts, "accel_lsb_unit": "g"})
+    phys = tmp_path / "phys.txt"
+    np.savetxt(phys, np.c_[0.01 * np.arange(1, 181), np.tile([0.1, 0.2, 9.8], (180, 1))], fmt="%.3f")
+    with pytest.raises(RawDataError, match=r"phys.txt, option 'accel_zero_count': expected integer counts"):
+        import_run("imu_tk", [phys, gyr], tmp_path / "land", RunMeta("d", "phys"), opts)
+
+
+def test_cli_import_imu_tk_warns_on_offset_counts(tmp_path):
+    acc, gyr, _, _ = _imu_tk_offset_files(tmp_path)
+    args = ["import", "imu_tk", str(acc), str(gyr), "--landing", str(tmp_path / "land"), "--device-id", "d",
+            "-o", "accel_lsb=0.0024", "-o", "gyro_lsb=0.00021"]
+    r = CliRunner().invoke(main, [*args, "--run-id", "raw"])
+    assert r.exit_code == 0, r.output
+    assert "WARN import imu_tk: acc.txt: the median specific force |f| of the record is" in r.output
+    assert "WARN import imu_tk: gyro.txt: the median angular rate |w| of the record is" in r.output
+    assert "-o accel_zero_count=N" in r.output
+    r = CliRunner().invoke(main, [*args, "--run-id", "zeroed", "-o", "accel_zero_count=32768", "-o", "gyro_zero_count=32768"])
+    assert r.exit_code == 0 and "WARN" not in r.output, r.output
+
+
 def test_imucal_session_import(shared_data, tmp_path):
     src = shared_data / "imucal_example" / "annotated_session.csv"
     before = _sha(src)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 
 import click
@@ -41,22 +42,32 @@ def command(fmt, sources, landing, device_id, run_id, device_model, grade, latit
     \b
     Formats (see docs/realdata.md):
       profile  CSV/parquet + a profile JSON (-o profile=FILE; schema raw_schemas/import_profile.schema.json)
-      imu_tk   ACC_FILE GYRO_FILE text logs (t x y z); counts need -o accel_lsb=.. -o gyro_lsb=..
+      imu_tk   ACC_FILE GYRO_FILE text logs (t x y z); counts need -o accel_lsb=.. -o gyro_lsb=..,
+               unsigned counts also their zero: -o accel_zero_count=.. -o gyro_zero_count=..
       imucal   annotated Ferraris session CSV; -o sample_rate_hz=.. (+ lsb options for counts)
       ros      sensor_msgs/Imu from a ROS 1 bag, ROS 2 bag folder or .mcap file (-o topic=..)
 
     The sources are only read. Bad input stops with an error naming the file, the row or field, and what was
-    expected (exit status 2).
+    expected (exit status 2). Values that look mis-scaled (a mostly still session whose median |f| is far
+    from 1 g, or whose median |w| is far from 0) are written but named in a WARN line on stderr, with the
+    option to check.
     """
     from raw_schemas.errors import RawDataError
-    from raw_schemas.importers import RunMeta, import_run
+    from raw_schemas.importers import ImportedDataWarning, RunMeta, import_run
 
     meta = RunMeta(device_id=device_id, run_id=run_id or Path(sources[0]).stem.replace(" ", "_"),
                    device_model=device_model, grade=grade, latitude_deg=latitude_deg, height_m=height_m,
                    gravity_mps2=gravity_mps2, start_time_utc=start_time_utc, power_cycle_index=power_cycle_index)
     try:
-        out = import_run(fmt, list(sources), landing, meta, _options(opts))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", ImportedDataWarning)
+            out = import_run(fmt, list(sources), landing, meta, _options(opts))
     except RawDataError as e:
         click.echo(f"FAIL import {fmt}: {e}", err=True)
         sys.exit(2)
+    for w in caught:
+        if issubclass(w.category, ImportedDataWarning):
+            click.echo(f"WARN import {fmt}: {w.message}", err=True)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     click.echo(f"ok   {out}")

@@ -9,10 +9,11 @@ One module per source format, all with the same signature ``read(sources: list[P
 from __future__ import annotations
 
 import importlib
+import warnings
 from pathlib import Path
 
 from raw_schemas.errors import RawDataError
-from raw_schemas.importers.common import ImportedSession, RunMeta, write_run
+from raw_schemas.importers.common import ImportedDataWarning, ImportedSession, RunMeta, write_run
 
 #: format name -> (module, one-line description)
 IMPORTERS: dict[str, tuple[str, str]] = {
@@ -32,9 +33,15 @@ def reader(fmt: str):
 
 def import_run(fmt: str, sources: list[str | Path], landing: str | Path, meta: RunMeta,
                options: dict[str, str] | None = None) -> Path:
-    """Read ``sources`` with the ``fmt`` importer and write ``<landing>/<device>/<run>/`` (returns that folder)."""
+    """Read ``sources`` with the ``fmt`` importer and write ``<landing>/<device>/<run>/`` (returns that folder).
+
+    The session's plausibility warnings (e.g. a static |f| far from 1 g: counts with an offset or a wrong lsb) are
+    issued as :class:`ImportedDataWarning`; the run is written all the same (``imulab import`` prints them)."""
     session = reader(fmt)([Path(s) for s in sources], dict(options or {}))
-    return write_run(session, Path(landing), meta)
+    out = write_run(session, Path(landing), meta)
+    for msg in session.warnings:
+        warnings.warn(msg, ImportedDataWarning, stacklevel=2)
+    return out
 
 
-__all__ = ["IMPORTERS", "ImportedSession", "RunMeta", "import_run", "reader", "write_run"]
+__all__ = ["IMPORTERS", "ImportedDataWarning", "ImportedSession", "RunMeta", "import_run", "reader", "write_run"]

@@ -34,6 +34,59 @@ class ImportedSession:
     notes: str = ""
     start_time_utc: str | None = None  # when the source carries absolute time (ROS stamps)
     sources: dict = field(default_factory=dict)  # file name -> description
+    warnings: tuple = ()  # plausibility warnings on the imported values (each names the file and the figure)
+
+
+class ImportedDataWarning(UserWarning):
+    """An imported session whose values look mis-scaled (e.g. a static |f| far from 1 g): written, but suspect."""
+
+
+#: median |f| of a record outside this band [g] is not gravity: the counts carry an offset or the lsb/unit is wrong
+STATIC_F_BAND_G = (0.5, 2.0)
+#: median |w| above this [rad/s] (57 deg/s) is no still or hand-held sensor: the gyro counts carry an offset
+STILL_GYRO_MAX_RADPS = 1.0
+
+
+def channel_si(values: np.ndarray, spec: dict, family: str) -> np.ndarray:
+    """Values of one family as stored in the run (counts or a unit) -> canonical SI, as ingestion converts them."""
+    from raw_schemas.units import COUNT_UNIT, si_factor
+
+    if spec.get("unit") == COUNT_UNIT:
+        return np.asarray(values, float) * float(spec["lsb"]) * si_factor(family, spec["lsb_unit"])
+    return np.asarray(values, float) * si_factor(family, spec["unit"])
+
+
+def gravity_check(accel_si: np.ndarray, file: str, hint: str) -> str | None:
+    """A warning when the record's median |f| (m/s^2, rows x 3) is far from 1 g, else None.
+
+    A calibration session (static poses, a hand-moved or multi-position test, a static run) is still most of
+    the time, so the median of |f| over all samples is close to 1 g whatever the attitude; a median outside
+    :data:`STATIC_F_BAND_G` means the values are not in the declared scale: integer counts read without their
+    zero offset (unsigned ADC counts around mid-scale) or a wrong lsb / unit. ``hint`` says which option to give.
+    """
+    from raw_schemas.units import STANDARD_GRAVITY_MPS2
+
+    mag = np.linalg.norm(np.asarray(accel_si, float), axis=1)
+    if mag.size == 0:
+        return None
+    med = float(np.median(mag))
+    lo, hi = STATIC_F_BAND_G
+    if lo * STANDARD_GRAVITY_MPS2 <= med <= hi * STANDARD_GRAVITY_MPS2:
+        return None
+    return (f"{file}: the median specific force |f| of the record is {med:.4g} m/s^2 ({med / STANDARD_GRAVITY_MPS2:.3g} g), "
+            f"outside {lo:g}-{hi:g} g for a session that is mostly still: {hint}")
+
+
+def still_gyro_check(gyro_si: np.ndarray, file: str, hint: str, where: str = "the record") -> str | None:
+    """A warning when the median |w| (rad/s, rows x 3) exceeds :data:`STILL_GYRO_MAX_RADPS`, else None."""
+    mag = np.linalg.norm(np.asarray(gyro_si, float), axis=1)
+    if mag.size == 0:
+        return None
+    med = float(np.median(mag))
+    if med <= STILL_GYRO_MAX_RADPS:
+        return None
+    return (f"{file}: the median angular rate |w| of {where} is {med:.4g} rad/s ({np.degrees(med):.4g} deg/s), above "
+            f"{STILL_GYRO_MAX_RADPS:g} rad/s for a sensor that is mostly still: {hint}")
 
 
 @dataclass(frozen=True)
