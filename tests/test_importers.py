@@ -300,3 +300,173 @@ def test_cli_import_imu_tk_writes_a_run(shared_data, tmp_path):
     assert [s.kind for s in steps] == ["pose", "free"] and steps[0].end_s == pytest.approx(50.0)
     assert run.manifest.site.gravity_mps2 == 9.81744
     assert run.imu.time_s.iloc[0] == pytest.approx(0.02984)  # the IMU clock is kept
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# -o options: every importer declares the keys it reads (OPTIONS); any other key is refused before anything is read
+# ------------------------------------------------------------------------------------------------------------------
+def test_unknown_option_is_refused_naming_key_format_and_suggestion(tmp_path):
+    from raw_schemas.importers import accepted_options
+
+    acc, gyr, _, _ = _imu_tk_offset_files(tmp_path)
+    opts = {"acel_lsb": "0.0024", "gyro_lsb": "0.00021", "accel_zero_count": "32768", "gyro_zero_count": "32768"}
+    with pytest.raises(RawDataError) as e:
+        import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "r"), opts)
+    msg = str(e.value)
+    assert "option 'acel_lsb'" in msg and "format 'imu_tk'" in msg and "did you mean 'accel_lsb'?" in msg, msg
+    assert str(sorted(accepted_options("imu_tk"))) in msg, msg  # the accepted options, sorted
+    assert not (tmp_path / "land").exists()  # refused before anything is written
+
+    # a key of another format: named, with the format that takes it; several unknown keys are all named
+    with pytest.raises(RawDataError, match=r"options 'gyro_zero_count', 'bogus'.*format 'imucal'.*"
+                                           r"'gyro_zero_count' \(.*accepted by format 'imu_tk'\), 'bogus'"):
+        import_run("imucal", [acc], tmp_path / "land", RunMeta("d", "r"),
+                   {"sample_rate_hz": "100", "gyro_zero_count": "32768", "bogus": "1"})
+    # site metadata given as a format option: pointed to the command-line option
+    with pytest.raises(RawDataError, match=r"'gravity_mps2' \(run metadata, not a format option: "
+                                           r"RunMeta\(gravity_mps2=\.\.\.\), imulab import --gravity-mps2\)"):
+        import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "r"), {"gravity_mps2": "9.81"})
+    # with the right key the same import goes through
+    opts["accel_lsb"] = opts.pop("acel_lsb")
+    import_run("imu_tk", [acc, gyr], tmp_path / "land", RunMeta("d", "r"), opts)
+
+
+def test_cli_unknown_option_exits_2_with_the_message_on_stderr(tmp_path):
+    acc, gyr, _, _ = _imu_tk_offset_files(tmp_path)
+    r = CliRunner().invoke(main, ["import", "imu_tk", str(acc), str(gyr), "--landing", str(tmp_path / "land"),
+                                  "--device-id", "d", "-o", "accel_lsb=0.0024", "-o", "gyro_lsb=0.00021",
+                                  "-o", "accel_zero_count=32768", "-o", "gyro_zero_count=32768", "-o", "acel_lsb_unit=g"])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.startswith("FAIL import imu_tk: (options), option 'acel_lsb_unit'"), r.stderr
+    assert "did you mean 'accel_lsb_unit'?" in r.stderr and "format 'imu_tk'" in r.stderr
+    assert "ok " not in r.stdout and not (tmp_path / "land").exists()
+
+
+def test_help_lists_each_formats_declared_options():
+    import importlib
+
+    from raw_schemas.importers import IMPORTERS
+
+    r = CliRunner().invoke(main, ["import", "--help"])
+    assert r.exit_code == 0, r.output
+    lines = r.output.splitlines()
+    for fmt, (mod, _) in IMPORTERS.items():
+        opts = importlib.import_module(mod).OPTIONS
+        assert opts and all(isinstance(k, str) and isinstance(d, str) and d for k, d in opts.items())
+        i = next(k for k, ln in enumerate(lines) if ln.strip().startswith(f"{fmt}:"))
+        listed = []
+        for ln in lines[i + 1:]:
+            if not ln.startswith("      "):
+                break
+            listed.append(ln.split()[0])
+        assert listed == sorted(opts), (fmt, listed)
+
+
+class _Spy(dict):
+    """Options dict that records every key an importer looks up."""
+
+    def __init__(self, *a, **k):
+        super().__init__(*a, **k)
+        self.seen = set()
+
+    def get(self, key, default=None):
+        self.seen.add(key)
+        return super().get(key, default)
+
+    def __getitem__(self, key):
+        self.seen.add(key)
+        return super().__getitem__(key)
+
+    def __contains__(self, key):
+        self.seen.add(key)
+        return super().__contains__(key)
+
+
+def test_declared_options_are_the_keys_the_importers_read(tmp_path):
+    """Every key a reader looks up is declared in its OPTIONS (a key read but not declared would be refused)."""
+    from raw_schemas.importers import accepted_options, imu_tk, imucal, profile
+
+    seen = {}
+    acc, gyr, _, _ = _imu_tk_offset_files(tmp_path)
+    o = _Spy(accel_lsb="0.0024", gyro_lsb="0.00021", accel_zero_count="32768", gyro_zero_count="32768",
+             initial_static_s="0.5")
+    imu_tk.read([acc, gyr], o)
+    phys = tmp_path / "phys.txt"
+    np.savetxt(phys, np.c_[0.01 * np.arange(1, 181), np.tile([0.1, 0.2, 9.8], (180, 1))], fmt="%.3f")
+    o2 = _Spy()
+    imu_tk.read([phys, phys], o2)
+    seen["imu_tk"] = o.seen | o2.seen
+
+    rng = np.random.default_rng(0)
+    rows = [(p, 50) for p in imucal.SECTIONS]
+    part = np.concatenate([[p] * n for p, n in rows])
+    df = pd.DataFrame({"part": part, "samples": np.arange(part.size),
+                       **{c: rng.standard_normal(part.size) for c in imucal.DATA_COLUMNS}})
+    df.to_csv(tmp_path / "s.csv", index=False)
+    o = _Spy(sample_rate_hz="100")
+    imucal.read([tmp_path / "s.csv"], o)
+    cont = df.drop(columns="part")
+    cont[list(imucal.DATA_COLUMNS)] = cont[list(imucal.DATA_COLUMNS)].round()  # integer counts: the lsb path
+    cont.to_csv(tmp_path / "c.csv", index=False)
+    (tmp_path / "sec.json").write_text(json.dumps({p: {"start": 50 * i, "end": 50 * (i + 1)}
+                                                   for i, p in enumerate(imucal.SECTIONS)}))
+    o2 = _Spy(sample_rate_hz="100", sections=str(tmp_path / "sec.json"), accel_lsb="0.001", gyro_lsb="0.1")
+    imucal.read([tmp_path / "c.csv"], o2)
+    seen["imucal"] = o.seen | o2.seen
+
+    src, prof, _ = _write_profile_case(tmp_path)
+    o = _Spy(profile=str(prof))
+    profile.read([src], o)
+    seen["profile"] = o.seen
+    for fmt, keys in seen.items():
+        assert keys <= set(accepted_options(fmt)), (fmt, sorted(keys - set(accepted_options(fmt))))
+    assert seen["imu_tk"] == set(accepted_options("imu_tk"))  # both paths together read every declared key
+    assert seen["imucal"] == set(accepted_options("imucal"))
+
+
+def test_ros_declared_options_match_the_source():
+    """The ros reader's option lookups (it needs bag files to run): every literal key it reads is declared."""
+    import re
+
+    from raw_schemas.importers import accepted_options, ros
+
+    src = Path(ros.__file__).read_text()
+    keys = set(re.findall(r"options\.get\(\"(\w+)\"", src)) | set(re.findall(r"options\[\"(\w+)\"\]", src))
+    assert keys == set(accepted_options("ros")), keys
+
+
+def _realdata_import_options() -> list[tuple[str, str]]:
+    """(format, key) of every ``-o key=`` in the ``imulab import FORMAT`` commands of docs/realdata.md (continuation
+    lines joined), and (None, key) for every other ``-o key=`` the page names."""
+    import re
+    import shlex
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "realdata.md").read_text()
+    lines, out, in_cmd = text.splitlines(), [], set()
+    i = 0
+    while i < len(lines):
+        if lines[i].strip().startswith("imulab import ") and "FORMAT" not in lines[i]:
+            start, cmd = i, lines[i].strip()
+            while cmd.endswith("\\"):
+                i += 1
+                cmd = cmd[:-1] + " " + lines[i].strip()
+            in_cmd.update(range(start, i + 1))
+            args = shlex.split(cmd)
+            out += [(args[2], args[k + 1].split("=", 1)[0]) for k, a in enumerate(args) if a in ("-o", "--option")]
+        i += 1
+    for k, ln in enumerate(lines):
+        if k not in in_cmd:
+            out += [(None, m) for m in re.findall(r"-o ([a-z][a-z0-9_]*)=", ln)]
+    return out
+
+
+def test_every_option_in_docs_realdata_is_accepted():
+    from raw_schemas.importers import IMPORTERS, accepted_options
+
+    used = _realdata_import_options()
+    assert sum(f is not None for f, _ in used) >= 8, used  # the sec. 5 commands are found
+    for fmt, key in used:
+        if fmt is not None:
+            assert key in accepted_options(fmt), f"docs/realdata.md: imulab import {fmt} -o {key}= is not accepted"
+        else:
+            assert any(key in accepted_options(f) for f in IMPORTERS), f"docs/realdata.md: -o {key}= is no format's option"

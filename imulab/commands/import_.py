@@ -19,8 +19,33 @@ def _options(pairs) -> dict:
     return out
 
 
-@click.command("import")
-@click.argument("fmt", metavar="FORMAT", type=click.Choice(["profile", "imu_tk", "imucal", "ros"]))
+def _help() -> str:
+    """The command's help: the formats from the registry, each with the -o options its module declares (``OPTIONS``)."""
+    from raw_schemas.importers import IMPORTERS, accepted_options
+
+    lines = ["Read SOURCES in FORMAT and write one contract run (manifest.json, imu.parquet, _COMPLETE) to LANDING.",
+             "", "\b", "Formats and the -o KEY=VALUE options each accepts (see docs/realdata.md):"]
+    for fmt in IMPORTERS:
+        lines.append(f"  {fmt}: {IMPORTERS[fmt][1]}")
+        opts = accepted_options(fmt)
+        width = max(map(len, opts))
+        lines += [f"      {k:<{width}}  {d}" for k, d in sorted(opts.items())]
+    lines += ["", "Any other option key stops the import with an error naming it and the accepted ones.",
+              "", ("The sources are only read. Bad input stops with an error naming the file, the row or field, and "
+                   "what was expected (exit status 2). Values that look mis-scaled (a mostly still session whose median "
+                   "|f| is far from 1 g, or whose median |w| is far from 0) are written but named in a WARN line on "
+                   "stderr, with the option to check.")]
+    return "\n".join(lines)
+
+
+def _formats() -> list[str]:
+    from raw_schemas.importers import IMPORTERS
+
+    return list(IMPORTERS)
+
+
+@click.command("import", help=_help())
+@click.argument("fmt", metavar="FORMAT", type=click.Choice(_formats()))
 @click.argument("sources", nargs=-1, required=True, type=click.Path(exists=True))
 @click.option("--landing", required=True, type=click.Path(file_okay=False), help="Landing folder to write <device>/<run>/ into.")
 @click.option("--device-id", required=True, help="Device id (folder name, manifest device.id).")
@@ -37,21 +62,6 @@ def _options(pairs) -> dict:
               help="Format option, e.g. -o profile=p.json, -o accel_lsb=0.0024, -o topic=/imu, -o sample_rate_hz=204.8.")
 def command(fmt, sources, landing, device_id, run_id, device_model, grade, latitude_deg, height_m, gravity_mps2,
             start_time_utc, power_cycle_index, opts):
-    """Read SOURCES in FORMAT and write one contract run (manifest.json, imu.parquet, _COMPLETE) to LANDING.
-
-    \b
-    Formats (see docs/realdata.md):
-      profile  CSV/parquet + a profile JSON (-o profile=FILE; schema raw_schemas/import_profile.schema.json)
-      imu_tk   ACC_FILE GYRO_FILE text logs (t x y z); counts need -o accel_lsb=.. -o gyro_lsb=..,
-               unsigned counts also their zero: -o accel_zero_count=.. -o gyro_zero_count=..
-      imucal   annotated Ferraris session CSV; -o sample_rate_hz=.. (+ lsb options for counts)
-      ros      sensor_msgs/Imu from a ROS 1 bag, ROS 2 bag folder or .mcap file (-o topic=..)
-
-    The sources are only read. Bad input stops with an error naming the file, the row or field, and what was
-    expected (exit status 2). Values that look mis-scaled (a mostly still session whose median |f| is far
-    from 1 g, or whose median |w| is far from 0) are written but named in a WARN line on stderr, with the
-    option to check.
-    """
     from raw_schemas.errors import RawDataError
     from raw_schemas.importers import ImportedDataWarning, RunMeta, import_run
 

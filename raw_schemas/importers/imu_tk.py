@@ -33,6 +33,19 @@ from raw_schemas.importers.common import (ImportedSession, channel_si, gravity_c
                                           sha256_sources, still_gyro_check)
 from raw_schemas.importers.text_table import read_numeric_columns
 
+#: the ``-o KEY=VALUE`` options this importer reads (key -> one-line description); any other key is refused
+OPTIONS = {
+    "accel_lsb": "value of one accelerometer count (required for integer counts)",
+    "accel_lsb_unit": "unit of accel_lsb (default m/s^2)",
+    "accel_zero_count": "accelerometer count that stands for zero input (default 0)",
+    "accel_unit": "unit of non-integer accelerometer values (default m/s^2)",
+    "gyro_lsb": "value of one gyro count (required for integer counts)",
+    "gyro_lsb_unit": "unit of gyro_lsb (default rad/s)",
+    "gyro_zero_count": "gyro count that stands for zero input (default 0)",
+    "gyro_unit": "unit of non-integer gyro values (default rad/s)",
+    "initial_static_s": "length of the initial static interval in s (default 0: none)",
+}
+
 
 def _spec(vals: np.ndarray, fam: str, options: dict, file: str) -> tuple[dict, float]:
     """The channel spec of a family and the zero count to subtract (0 for physical values)."""

@@ -29,6 +29,19 @@ from raw_schemas.importers.common import ImportedSession, option_float, sha256_s
 SECTIONS = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a", "x_rot", "y_rot", "z_rot")
 DATA_COLUMNS = ("acc_x", "acc_y", "acc_z", "gyr_x", "gyr_y", "gyr_z")
 
+#: the ``-o KEY=VALUE`` options this importer reads (key -> one-line description); any other key is refused
+OPTIONS = {
+    "sample_rate_hz": "the session's sample rate in Hz (required: imucal files do not store it)",
+    "sections": "section list JSON for a continuous recording without a 'part' column",
+    "expected_angle_deg": "angle of each hand rotation in deg (default -360)",
+    "accel_lsb": "value of one accelerometer count (required for integer counts)",
+    "accel_lsb_unit": "unit of accel_lsb (default g)",
+    "accel_unit": "unit of non-integer accelerometer values (default m/s^2)",
+    "gyro_lsb": "value of one gyro count (required for integer counts)",
+    "gyro_lsb_unit": "unit of gyro_lsb (default deg/s)",
+    "gyro_unit": "unit of non-integer gyro values (default deg/s)",
+}
+
 
 def _spec(vals: np.ndarray, fam: str, options: dict, file: str) -> dict:
     if np.all(vals == np.round(vals)):

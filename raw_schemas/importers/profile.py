@@ -37,6 +37,11 @@ from raw_schemas.manifest import IMU_CHANNELS, _contract_error
 
 TIME_UNITS_TO_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 
+#: the ``-o KEY=VALUE`` options this importer reads (key -> one-line description); any other key is refused
+OPTIONS = {
+    "profile": "import profile JSON (schema raw_schemas/import_profile.schema.json; required)",
+}
+
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)

@@ -21,6 +21,13 @@ from raw_schemas.importers.common import ImportedSession, median_rate_hz, sha256
 
 IMU_TYPES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
 
+#: the ``-o KEY=VALUE`` options this importer reads (key -> one-line description); any other key is refused
+OPTIONS = {
+    "topic": "the sensor_msgs/Imu topic (needed when the source holds several)",
+    "time": "'record': time messages by their record time, not the header stamp",
+    "test_kind": "'static' (default) or 'tablefree'",
+}
+
 
 def _need(pkg: str):
     try:
