@@ -85,9 +85,16 @@ def _asset_kwargs(level: str) -> dict:
     return {}
 
 
+def stage_deps(graph: StageGraph, spec: StageSpec) -> list[dg.AssetDep]:
+    """The asset's deps: an upstream of the same level maps key to key; a cross-level read (a device or fleet stage
+    reading finer partitions) and a sibling (a capture stage reading the captures of its device) map to every
+    partition (``AllPartitionMapping``), so in one run the upstream is materialized over the whole range first."""
+    return [dg.AssetDep(u) if graph[u].level == spec.level and u not in spec.siblings
+            else dg.AssetDep(u, partition_mapping=dg.AllPartitionMapping()) for u in spec.dependencies]
+
+
 def stage_asset(graph: StageGraph, spec: StageSpec) -> dg.AssetsDefinition:
-    deps = [dg.AssetDep(u) if graph[u].level == spec.level else dg.AssetDep(u, partition_mapping=dg.AllPartitionMapping())
-            for u in spec.upstream]
+    deps = stage_deps(graph, spec)
 
     @dg.asset(name=spec.name, group_name=spec.group, code_version=spec.code_version, deps=deps, kinds=set(spec.kinds),
               description=spec.description, **_asset_kwargs(spec.level))

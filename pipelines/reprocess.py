@@ -54,7 +54,12 @@ class PlannedRun:
 
 def planned_runs(plan: ReprocessPlan, capture_order: list[str], device_order: list[str],
                  levels=("capture", "device", "fleet"), exclude_devices=()) -> list[PlannedRun]:
-    """One run per contiguous block of stale partitions and level, selecting only the stale stages."""
+    """One run per contiguous block of stale partitions and level, selecting only the stale stages.
+
+    When a stage reading siblings is stale, the stale captures are launched as ONE range (first to last stale
+    capture; partitions between them are reused, not recomputed): a device's captures need not be contiguous in
+    the partition order, and a sibling recomputed in a later run than its reader would leave the reader at a
+    version other than the expected one (and the no-output ledger would then keep it from being retried)."""
     runs: list[PlannedRun] = []
     exclude_devices = set(exclude_devices)
     orders = {"capture": capture_order, "device": device_order}
@@ -66,6 +71,9 @@ def planned_runs(plan: ReprocessPlan, capture_order: list[str], device_order: li
             continue
         wanted = set(plan.stale_keys(level)) - (exclude_devices if level == "device" else set())
         ordered = orders[level]
+        if level == "capture" and set(plan.sibling_readers) & set(plan.stale_stages(level)):
+            at = [i for i, k in enumerate(ordered) if k in wanted]
+            wanted = set(ordered[at[0]: at[-1] + 1]) if at else wanted
         for first, last in contiguous_blocks(ordered, wanted):
             block = ordered[ordered.index(first): ordered.index(last) + 1]
             runs.append(PlannedRun(LEVEL_JOB[level], level, first, last, tuple(plan.stale_stages(level, block))))

@@ -1,9 +1,10 @@
 """The one way to compute a partition, used by the Dagster assets, by ``imulab verify`` and by the reprocessing planner.
 
-- ``StageGraph``: an ordered, validated list of stages (every upstream before its downstreams).
+- ``StageGraph``: an ordered, validated list of stages (every upstream and sibling before the stages reading it).
 - Versions: a partition's version is ``version_id(stage, code_version, inputs)`` where ``inputs`` are the sha256 of
   the raw run files (root stages) or the versions of the upstream partitions it reads (``input_versions``; which
-  partitions a stage reads is ``upstream_keys``, the one rule). Equal code and inputs give an equal version, so
+  partitions a stage reads is ``upstream_keys``, the one rule; a capture stage's siblings, the same stage's
+  partitions for every capture of its device, are ``sibling_keys``). Equal code and inputs give an equal version, so
   unchanged work is reused, not recomputed or rewritten (idempotent), and the planner predicts versions before
   anything runs by passing the versions upstreams *will* have.
 - ``decide`` says what a (stage, partition) needs: its inputs are missing (waiting), the stage does not apply to
@@ -43,13 +44,20 @@ class StageGraph:
         for s in self._specs:
             if s.name in self._by_name:
                 raise ValueError(f"stage {s.name!r} listed twice")
-            missing = [u for u in s.upstream if u not in self._by_name]
+            missing = [u for u in s.dependencies if u not in self._by_name]
             if missing:
                 raise ValueError(f"stage {s.name!r}: upstream {missing} not listed before it")
             for u in s.upstream:
                 if LEVELS.index(self._by_name[u].level) > LEVELS.index(s.level):
                     raise ValueError(f"stage {s.name!r} ({s.level}) reads {u!r} ({self._by_name[u].level}): "
                                      "stages read only their own level or a finer one")
+            if s.siblings and s.level != "capture":
+                raise ValueError(f"stage {s.name!r} ({s.level}) declares siblings {list(s.siblings)}: only a "
+                                 "capture-level stage reads siblings (the partitions of other captures of its device)")
+            for u in s.siblings:
+                if self._by_name[u].level != "capture":
+                    raise ValueError(f"stage {s.name!r} reads {u!r} ({self._by_name[u].level}) as a sibling: only "
+                                     "capture-level stages can be siblings (device and fleet stages are upstreams)")
             self._by_name[s.name] = s
 
     def __iter__(self):
@@ -87,7 +95,7 @@ class StageGraph:
             n = todo.pop()
             if n not in needed and self[n].level == "capture":
                 needed.add(n)
-                todo += list(self[n].upstream)
+                todo += list(self[n].dependencies)
         return [s for s in self._specs if s.name in needed]
 
     def with_stages(self, *stages: StageSpec, replace: bool = False) -> StageGraph:
@@ -109,7 +117,7 @@ class StageGraph:
         if unknown:
             raise KeyError(f"unknown stage(s) {unknown}; stages: {self.names}")
         for s in self._specs:  # dependency order: upstreams are decided first
-            if any(u in dropped for u in s.upstream):
+            if any(u in dropped for u in s.dependencies):
                 dropped.add(s.name)
         return self.subset(n for n in self.names if n not in dropped)
 
@@ -136,21 +144,33 @@ def upstream_keys(graph: StageGraph, spec: StageSpec, up: str, key: str, partiti
     return [key]
 
 
+def sibling_keys(sib: str, key: str, partitions_of: Callable[[str], Iterable[str]]) -> list[str]:
+    """Partitions of sibling stage ``sib`` that a capture stage reads for capture ``key``: every capture of the same
+    device that exists (or will, once a reprocessing plan ran), ``key`` itself included."""
+    device = split_capture_key(key)[0]
+    return sorted(k for k in partitions_of(sib) if split_capture_key(k)[0] == device)
+
+
 def gather_inputs(graph: StageGraph, spec: StageSpec, key: str, store: VersionedStore, archive,
                   version_of: Callable | None = None, partitions_of: Callable | None = None
                   ) -> tuple[dict[str, str] | None, str | None]:
     """(versions of what ``spec`` computes ``key`` from, or None when an input is missing; the reason the partition
     is blocked, when a capture-level upstream version was rejected by a quality gate).
 
-    Device and fleet stages read the upstream partitions that exist and were not rejected. ``version_of(stage,
-    key)`` defaults to the stored CURRENT version; the reprocessing planner passes expected ones.
+    Device and fleet stages read the upstream partitions that exist and were not rejected; so do capture stages
+    read their siblings (``sibling_keys``): a sibling partition without a version (missing, not applicable, or
+    failed) or rejected by a gate is left out, never waited for, and the others enter the inputs as
+    ``"<sibling>/<key>"`` like upstreams. ``version_of(stage, key)`` defaults to the stored CURRENT version; the
+    reprocessing planner passes expected ones.
     """
     version_of = version_of or store.current_version
     partitions_of = partitions_of or store.partitions
+    out: dict[str, str] = {}
     if spec.level == "capture" and not spec.upstream:
         d = archive.run_dir(key)
-        return (raw_versions(d) if d.is_dir() else None), None
-    out: dict[str, str] = {}
+        if not d.is_dir():
+            return None, None
+        out = raw_versions(d)
     for up in spec.upstream:
         for k in upstream_keys(graph, spec, up, key, partitions_of):
             v = version_of(up, k)
@@ -164,6 +184,11 @@ def gather_inputs(graph: StageGraph, spec: StageSpec, key: str, store: Versioned
                     return None, f"{up} rejected ({why})"
                 continue
             out[f"{up}/{k}"] = v
+    for sib in spec.siblings:  # optional inputs: what exists and passed its gates
+        for k in sibling_keys(sib, key, partitions_of):
+            v = version_of(sib, k)
+            if v is not None and store.rejection(sib, k, v) is None:
+                out[f"{sib}/{k}"] = v
     if spec.level != "capture" and not out:
         return None, None
     return out, None

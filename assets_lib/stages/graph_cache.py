@@ -1,7 +1,7 @@
 """The stage graph without importing the stages: what the reprocessing planner needs of every stage (name, level,
-upstream, test kinds, code version), saved once the real graph was imported and reused while no project source
-changed, so a run on an unchanged archive plans without importing the science (scipy, numba) or computing source
-digests.
+upstream, siblings, test kinds, code version), saved once the real graph was imported and reused while no project
+source changed, so a run on an unchanged archive plans without importing the science (scipy, numba) or computing
+source digests.
 
 The cache is keyed by ``sources_fingerprint``: a sha256 over the path and bytes of every ``.py`` file of the
 project packages (``assets_lib``, ``raw_schemas``), a superset of what any stage's code version reads
@@ -20,7 +20,7 @@ from assets_lib.stages.engine import StageGraph
 from assets_lib.stages.sources import PROJECT_PACKAGES, ROOT
 from assets_lib.stages.spec import StageSpec
 
-FORMAT = 1
+FORMAT = 2  # 2: siblings
 
 
 def sources_fingerprint(root: Path = ROOT) -> str:
@@ -42,6 +42,7 @@ def save(graph: StageGraph, path: Path, fingerprint: str | None = None) -> None:
     """Write the planning view of ``graph`` to ``path`` (atomically)."""
     data = {"format": FORMAT, "fingerprint": fingerprint or sources_fingerprint(), "stages": [
         {"name": s.name, "level": s.level, "declared_version": s.declared_version, "upstream": list(s.upstream),
+         "siblings": list(s.siblings),
          "group": s.group, "applies_to": None if s.applies_to is None else list(s.applies_to), "kinds": list(s.kinds),
          "description": s.description, "code_version": s.code_version} for s in graph]}
     path = Path(path)
@@ -62,7 +63,8 @@ def load(path: Path, fingerprint: str | None = None) -> StageGraph | None:
     specs = []
     for d in data["stages"]:
         s = StageSpec(d["name"], d["level"], d["declared_version"], tuple(d["upstream"]), _not_loaded, d["group"],
-                      None if d["applies_to"] is None else tuple(d["applies_to"]), tuple(d["kinds"]), d["description"])
+                      None if d["applies_to"] is None else tuple(d["applies_to"]), tuple(d["kinds"]), d["description"],
+                      siblings=tuple(d.get("siblings", ())))
         s.__dict__["code_version"] = d["code_version"]  # the cached_property's slot: no source digest recomputed
         specs.append(s)
     return StageGraph(specs)

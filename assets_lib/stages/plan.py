@@ -2,8 +2,9 @@
 
 A partition is stale when the version it *should* have (``engine.decide``: the same rule that computes it) differs
 from its ``CURRENT`` version, or when it has never been materialized. Stages are walked in graph order and every
-stage's inputs use its upstreams' *expected* versions, so a changed code version or a re-landed raw file
-propagates down the graph before anything runs.
+stage's inputs use its upstreams' (and siblings') *expected* versions, so a changed code version or a re-landed raw
+file propagates down the graph before anything runs (a new capture of a device changes the expected version of the
+stages reading it as a sibling on the device's other captures).
 
 A partition whose stage produced no output at its expected version (the compute returned ``None`` or failed)
 would look "never materialized" forever; ``record_no_output`` notes such (stage, partition, version) triples in
@@ -52,6 +53,9 @@ class ReprocessPlan:
     failed: list[tuple[str, str, str]] = field(default_factory=list)
     blocked_by: list[tuple[str, str, str]] = field(default_factory=list)
     up_to_date: int = 0
+    #: capture stages that read siblings (``StageSpec.siblings``): when one is stale, the captures are launched as
+    #: one range so every sibling is recomputed before it is read (``pipelines.reprocess.planned_runs``)
+    sibling_readers: tuple[str, ...] = ()
 
     @property
     def empty(self) -> bool:
@@ -136,7 +140,7 @@ def plan_reprocess(graph: StageGraph, store: VersionedStore, archive, capture_ke
         return sorted(set(store.partitions(stage))
                       | {k for k in planned.get(graph[stage].level, []) if expected.get((stage, k))})
 
-    plan = ReprocessPlan(order=graph.names)
+    plan = ReprocessPlan(order=graph.names, sibling_readers=tuple(s.name for s in graph if s.siblings))
     for spec in graph:
         for key in stage_keys(spec, capture_keys, device_keys):
             d = decide(graph, spec, key, store, archive, version_of, partitions_of)

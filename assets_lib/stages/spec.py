@@ -1,5 +1,6 @@
 """What a stage is: a named pure function ``compute(key, view) -> StageOutput | None`` at one partition level, with
-its upstream stages, a declared code version and the test kinds it applies to. ``@stage(...)`` turns a function
+its upstream stages (and, for a capture stage, its sibling stages: read for every capture of the same device), a
+declared code version and the test kinds it applies to. ``@stage(...)`` turns a function
 into a ``StageSpec``; nothing is registered anywhere (the ordered list is ``assets_lib.stages.registry``)."""
 
 from __future__ import annotations
@@ -51,6 +52,16 @@ class StageSpec:
     kinds: tuple[str, ...] = ("parquet",)
     description: str = ""
     gates: tuple[Gate, ...] = ()
+    #: capture-level stages whose partitions for every capture of the SAME device (this key included, when it
+    #: exists) a capture-level stage reads, e.g. a device-wide noise prior from the device's static runs. Optional
+    #: inputs: a missing, not-applicable or gate-rejected sibling partition is skipped, never waited for; the ones
+    #: read enter the version (``engine.gather_inputs``), so adding, changing or removing one makes it stale.
+    siblings: tuple[str, ...] = ()
+
+    @property
+    def dependencies(self) -> tuple[str, ...]:
+        """Every stage this one reads: its upstreams, then its siblings (ordering, cycles, dropping stages)."""
+        return tuple(dict.fromkeys((*self.upstream, *self.siblings)))
 
     @functools.cached_property
     def code_version(self) -> str:
@@ -60,14 +71,23 @@ class StageSpec:
 
 
 def stage(name: str, *, level: str, group: str, code_version: str, upstream=(), applies_to=None,
-          kinds=("parquet",), description: str = "", gates=()):
-    """Decorator: the function becomes the ``compute`` of a ``StageSpec`` (returned in its place)."""
+          kinds=("parquet",), description: str = "", gates=(), siblings=()):
+    """Decorator: the function becomes the ``compute`` of a ``StageSpec`` (returned in its place).
+
+    ``upstream``: stages read at the same key (same level) or over the finer partitions of this one (a device
+    stage reads every capture of its device, a fleet stage every partition). ``siblings`` (capture stages only):
+    capture stages read for every capture of the same device, optional inputs (``StageSpec.siblings``; the compute
+    lists them with ``inputs.sibling_keys(stage)``)."""
     if level not in LEVELS:
         raise ValueError(f"stage {name!r}: level {level!r} is not one of {LEVELS}")
+    if siblings and level != "capture":
+        raise ValueError(f"stage {name!r} ({level}) declares siblings {list(siblings)}: only a capture-level stage "
+                         "reads siblings (the partitions of other captures of its device)")
 
     def deco(compute) -> StageSpec:
         doc = description or (compute.__doc__ or "").strip().splitlines()[0]
         return StageSpec(name, level, str(code_version), tuple(upstream), compute, group,
-                         tuple(applies_to) if applies_to else None, tuple(kinds), doc, tuple(gates))
+                         tuple(applies_to) if applies_to else None, tuple(kinds), doc, tuple(gates),
+                         tuple(siblings))
 
     return deco

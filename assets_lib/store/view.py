@@ -1,7 +1,8 @@
 """The one read view over the store: given versions of upstream partitions, their tables, metadata and files.
 
 A stage's compute function receives a ``StoreView`` bound to the partition it computes (``key``) and to the exact
-upstream versions its own version was derived from; the records module reads a run's outputs through the same
+upstream versions its own version was derived from (a device stage lists its device's captures with ``keys_of``, a
+capture stage its siblings, the same device's captures of a sibling stage, with ``sibling_keys``); the records module reads a run's outputs through the same
 view. Nothing here writes.
 """
 
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from assets_lib.store.keys import split_capture_key
 from assets_lib.store.versioned import META, VersionedStore, read_table
 
 
@@ -60,6 +62,17 @@ class StoreView:
     def keys_of(self, asset: str) -> list[str]:
         """Partitions of ``asset`` this view holds (device and fleet stages read many)."""
         return sorted(k.split("/", 1)[1] for k in self.versions if k.startswith(f"{asset}/"))
+
+    def sibling_keys(self, asset: str) -> list[str]:
+        """Captures of the bound partition's device whose ``asset`` partition this view holds: a capture stage's
+        siblings (``StageSpec.siblings``) that exist and passed their gates, the bound key included when it does."""
+        device = split_capture_key(self._key(None))[0]
+        return [k for k in self.keys_of(asset) if split_capture_key(k)[0] == device]
+
+    def sibling_tables(self, asset: str, name: str, columns=None) -> dict[str, pd.DataFrame]:
+        """``{capture key: table}`` of the sibling partitions of ``asset`` that stored a table ``name``."""
+        return {k: self.table(asset, name, key=k, columns=columns) for k in self.sibling_keys(asset)
+                if self.has_table(asset, name, key=k)}
 
     def run_dir(self) -> Path:
         """The raw run folder of the bound capture partition."""
