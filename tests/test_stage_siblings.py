@@ -286,3 +286,20 @@ def test_dagster_edge_and_one_batched_run_then_reprocessing(workdir):
         assert all(store.current_version(s.stage, s.key) == s.expected for s in plan.stale)
         assert store.read("a_fit", "A__r1", "prior")["sibling"].tolist() == ["A__s1", "A__s2"]
         assert planning.plan_reprocess(GRAPH, store, archive, cap, dev).empty
+
+
+def test_recompute_capture_recomputes_the_siblings_a_stage_reads(workdir):
+    """``imulab verify``'s recomputation (``recompute_capture`` into an empty store) gives a sibling reader the version
+    the pipeline gave it: the device's other captures' sibling stages are computed first (rejected or not applicable
+    ones skipped as the engine skips them)."""
+    from assets_lib.stages.engine import recompute_capture
+
+    store, archive = toy_world(workdir)
+    compute_all(store, archive, sorted(RUNS))
+    for key in ("A__r1", "B__r1", "C__r1"):
+        fresh = VersionedStore(workdir / f"fresh_{key}")
+        got = recompute_capture(GRAPH, key, fresh, archive, ["a_fit"])
+        assert got[f"a_fit/{key}"] == store.current_version("a_fit", key)
+        assert fresh.read("a_fit", key, "prior").equals(store.read("a_fit", key, "prior"))
+    assert {"z_noise/A__s1", "z_noise/A__s2"} <= set(recompute_capture(GRAPH, "A__r2", VersionedStore(workdir / "f2"),
+                                                                       archive, ["a_fit"]))

@@ -327,9 +327,24 @@ def stage_keys(spec: StageSpec, capture_keys: Iterable[str], device_keys: Iterab
 def recompute_capture(graph: StageGraph, key: str, store: VersionedStore, archive, stages: Iterable[str]) -> dict[str, str]:
     """Compute the capture-level ``stages`` (and what they need) for ``key`` into ``store`` (``imulab verify``
     recomputes a record's run into a temporary store this way); returns ``{"<stage>/<key>": version}`` of what
-    was computed. A failing stage raises, naming the stage and the reason."""
+    was computed. A stage reading siblings gets them first: the sibling stages (and what they need) for every other
+    complete capture of the device in ``archive``, as the pipeline computes them (a sibling that fails or does not
+    apply is skipped there as here). A failing stage of ``key`` raises, naming the stage and the reason."""
     versions = {}
+    device = split_capture_key(key)[0]
+    siblings_done: set[str] = set()
     for spec in graph.capture_closure(stages):
+        for sib in spec.siblings:
+            if sib in siblings_done:
+                continue
+            siblings_done.add(sib)
+            for other in sorted(archive.complete_runs()):
+                if other == key or split_capture_key(other)[0] != device:
+                    continue
+                for s in graph.capture_closure([sib]):
+                    o = compute_partition(graph, s, other, store, archive)
+                    if o.done:
+                        versions[f"{s.name}/{other}"] = o.version
         o = compute_partition(graph, spec, key, store, archive)
         if o.failed and o.version is None:  # the compute raised (a gate rejection is an outcome, not an error)
             raise RuntimeError(f"stage {spec.name} failed for {key}: {o.reason}")
