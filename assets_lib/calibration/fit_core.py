@@ -93,6 +93,12 @@ Undetected 1/f level (B = 0) on a schedule with < 3 residual dof (the 6-position
     consumer 0.864 / 1.88. The run's own data cannot tell a floor at 0.003 sem^2 from one at 0.3 sem^2; an interval
     right at every grade needs information from outside the run (the device's long static Allan record as a prior
     on B), which the calibration fits do not receive today.
+
+Device noise prior (:mod:`assets_lib.calibration.noise_prior`, library; the stages do not pass it yet)
+    The fits can take B from the device's static records instead of the run's plateaus: a two-sided estimate as
+    ``flicker_tau2`` with the dof of its interval (:func:`flicker_dof_from_interval`), integrated as above; an upper
+    bound as :class:`FlickerBoundLaw` (tau^2 <= bound^2 / pi, flat in tau, times the plateaus' REML), never as B.
+    Measured on the dev cache (benchmarks/README.md, "Device noise prior (library, not wired)").
 """
 
 from __future__ import annotations
@@ -310,7 +316,7 @@ def fit_linear(
     nuisance: np.ndarray | None = None,
     times: tuple[np.ndarray, np.ndarray] | None = None,
     flicker_tau2: float | None = None,
-    flicker_tau2_dof: float | FlickerLaw | None = None,
+    flicker_tau2_dof: float | FlickerLaw | FlickerBoundLaw | None = None,
 ) -> LinearFit:
     """[SEED003] eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
 
@@ -322,7 +328,9 @@ def fit_linear(
     the final fit (needs sems and a constant column). ``flicker_tau2`` the run's 1/f level (:func:`flicker_prior_tau2`)
     and ``flicker_tau2_dof`` its degrees of freedom (:func:`flicker_b_dof`): with both, the fit marginalises over
     tau^2 (see :func:`flicker_gls`) instead of taking the estimate as exact; a :class:`FlickerLaw` instead of the
-    dof: the Allan estimate's full sampling law (used when B was not detected, module docstring).
+    dof: the Allan estimate's full sampling law (used when B was not detected, module docstring); a
+    :class:`FlickerBoundLaw` with ``flicker_tau2`` its ``tau2_max``: only an upper bound on B is known (the device's
+    static record, :mod:`assets_lib.calibration.noise_prior`), tau^2 integrated over [0, tau2_max].
     ``nuisance`` (p,) bool: columns that absorb what they can (kept while linearly independent, never forcing
     other columns out); a caller reports them only when the whole nuisance group is observable.
     ``screen_columns`` (n, m): extra smooth nuisance regressors used only by the outlier test (e.g. |w|, w^2,
@@ -447,7 +455,7 @@ def fit_linear(
         # censored likelihood of "not detected" (module docstring).
         if dof >= 3 or sig is None or not len(idx):
             flicker_tau2 = None
-        elif isinstance(flicker_tau2_dof, FlickerLaw):
+        elif isinstance(flicker_tau2_dof, FLICKER_LAWS):
             flicker_tau2 = flicker_tau2_dof.resolution_tau2  # grid anchor; the censored law weighs it
         else:
             flicker_tau2 = float(np.median(sig[idx] ** 2)) / FLICKER_WHITE
@@ -683,7 +691,7 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
 
 def _integrates_tau2(tau2: float | None, prior_dof) -> bool:
     """Whether :func:`flicker_gls` integrates tau^2 out (an Allan estimate with its degrees of freedom or law)."""
-    if isinstance(prior_dof, FlickerLaw):
+    if isinstance(prior_dof, FLICKER_LAWS):
         return bool(tau2 is not None and tau2 > 0)
     return bool(tau2 is not None and tau2 > 0 and prior_dof is not None and np.isfinite(prior_dof) and prior_dof > 0)
 
@@ -694,9 +702,12 @@ FLICKER_GRID = np.linspace(-7.0, 4.0, 45)
 
 def _flicker_marginal(parts, nll, t0: float, nu, scale: float, p: int):
     """Posterior-mean GLS over tau^2 (see :func:`flicker_gls`): grid in ln tau^2, weights from the Allan estimate's
-    likelihood (chi-square with nu dof, or a :class:`FlickerLaw`) and the plateaus' REML likelihood."""
-    law = nu if isinstance(nu, FlickerLaw) else None
-    if law is not None:  # from below the detection scale to above the estimate
+    likelihood (chi-square with nu dof, a :class:`FlickerLaw`, or a :class:`FlickerBoundLaw`) and the plateaus' REML
+    likelihood."""
+    law = nu if isinstance(nu, FLICKER_LAWS) else None
+    if isinstance(law, FlickerBoundLaw):  # a bound's own grid: midpoints in ln tau^2 below tau2_max
+        grid = law.tau2_grid
+    elif law is not None:  # from below the detection scale to above the estimate
         lo = law.resolution_tau2 * np.exp(FLICKER_GRID[0])
         hi = max(law.resolution_tau2, law.f_hat / FLICKER_WHITE) * np.exp(FLICKER_GRID[-1])
         grid = np.geomspace(lo, hi, max(len(FLICKER_GRID), int(np.ceil(np.log(hi / lo) / 0.25)) + 1))
@@ -879,3 +890,56 @@ def flicker_law(p, channel: str, max_cluster_fraction: float = 0.5) -> FlickerLa
     except np.linalg.LinAlgError:
         return None
     return law if np.isfinite(r) and r > 0 else None
+
+
+@dataclass(frozen=True)
+class FlickerBoundLaw:
+    """What an upper bound on B says of tau^2 = B^2 / pi: tau^2 <= tau2_max, nothing more. Posterior
+    p(tau | plateaus) ~ L_REML(tau^2) 1[0 <= tau <= tau_max] (prior flat in tau on [0, tau_max], [GELMAN2006] sec. 4).
+
+    The device's long static record (the ``allan_deviation`` stage's IEEE 952 fit, [IEEE952] C.23) reports B as a
+    one-sided upper bound (the profile interval's upper end, ``is_upper_bound``) when the record does not resolve the
+    floor: a navigation gyro's floor shows at tau ~ 1e4-1e5 s, beyond a practical record. Taking the bound as B
+    over-covers (it lies 2-7x above the truth: rate-fit bias z sd 0.45 / 0.66 navigation / tactical on 20-min
+    records, benchmarks/README.md session 9); the bound as a hard support with a prior flat in tau (not in
+    ln tau^2: with a likelihood flat near zero a log-uniform prior leaves the posterior set by the grid's lower end,
+    [GELMAN2006] sec. 4) leaves the plateaus' REML likelihood ([PATTERSON1971]) to weigh the levels below it, and
+    with a REML flat there the posterior mean of tau^2 is tau2_max / 3. Hard, not a smooth edge: the bound is the
+    record's 95 % upper limit and the REML term already falls above the plateaus' own level, so the support is the
+    only information the bound carries; a softened edge (mass above the bound) would add back the over-coverage
+    the bound as B showed. Measured (dev cache, benchmarks/README.md "Device noise prior"): right where the bound lies
+    ~1.7-2.4x above the true B (navigation gyro, 3 h and 8 h records: bias z sd 0.75-0.87 -> 0.98-1.06; tactical,
+    20 min: 0.86-0.89 -> 0.98-0.99); still wide at 6.5x (navigation, 20 min: rate fit 0.80 -> 0.70) and too narrow
+    at ~1x (tactical channels still a bound at 3 h: z sd 1.62), since the posterior mean sits near tau2_max / 3.
+
+    Interface of :class:`FlickerLaw` for :func:`fit_linear` / :func:`flicker_gls` / :func:`_flicker_marginal`:
+    ``loglik`` (0 inside the support, -inf above), ``resolution_tau2`` (the bound: the grid's anchor), ``f_hat`` (0:
+    no estimate), and ``tau2_grid``, the midpoints of ``FLICKER_BOUND_STEPS`` cells of width 0.25 in ln tau^2 below
+    tau2_max (a midpoint rule: the density in ln tau^2 is largest at the bound, where an end point would over-weigh
+    half a cell); the mass below the grid, tau < tau_max e^-5.5, is 0.4 % of the prior's.
+    """
+
+    tau2_max: float
+    f_hat: float = 0.0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.tau2_max) and self.tau2_max > 0):
+            raise ValueError(f"FlickerBoundLaw needs a positive finite tau2_max, got {self.tau2_max!r}")
+
+    @property
+    def resolution_tau2(self) -> float:
+        return float(self.tau2_max)
+
+    @property
+    def tau2_grid(self) -> np.ndarray:
+        return float(self.tau2_max) * np.exp(-FLICKER_BOUND_STEP * (np.arange(FLICKER_BOUND_STEPS) + 0.5))
+
+    def loglik(self, tau2: float) -> float:
+        return 0.0 if 0.0 <= tau2 <= self.tau2_max * (1.0 + 1e-12) else -np.inf
+
+
+#: ln tau^2 cell width and number of cells of :class:`FlickerBoundLaw`'s grid (down to tau2_max e^-11)
+FLICKER_BOUND_STEP = 0.25
+FLICKER_BOUND_STEPS = 44
+#: the sampling laws :func:`fit_linear` accepts as ``flicker_tau2_dof`` (duck-typed: loglik, resolution_tau2, f_hat)
+FLICKER_LAWS = (FlickerLaw, FlickerBoundLaw)

@@ -38,7 +38,17 @@ from assets_lib.calibration.fit_core import (
     flicker_law,
     flicker_prior_tau2,
 )
-from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_multiposition_residuals_png, residual_frame
+from assets_lib.calibration.fit_report import (
+    coefficient_frame,
+    coefficient_row,
+    plot_multiposition_residuals_png,
+    residual_frame,
+)
+from assets_lib.calibration.noise_prior import (
+    DeviceNoisePrior,
+    prior_flicker,
+    with_source,
+)
 from assets_lib.calibration.rate_fit import GyroRateFit, select_rows
 from assets_lib.calibration.triad import AXES, off_diagonal_matrix
 from assets_lib.coefficient import Coefficient, ratio_with_stderr
@@ -92,6 +102,7 @@ class AccelAxisFit:
     cross_coupling: dict  # {'y': Coefficient} Kc[i, j] 1/(m/s^2)
     n_plateaus: int
     n_samples: int
+    b_source: str = ""  # where the 1/f level B came from when not the run's plateaus (the device's static record)
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,6 +150,8 @@ class AccelMultipositionFit:
                 note = f.unobservable_reason[f.names.index(col)] if col in f.names else "not in the fitted model"
                 if not c.observable and not note and name.startswith("misalignment_"):
                     note = "needs the scale factor of this axis, which the schedule does not observe"
+                if name == "bias":
+                    note = with_source(note, ax.b_source)
                 rows.append(coefficient_row(coefficient=name, estimate=c, note=note, **common))
         return coefficient_frame(rows)
 
@@ -169,12 +182,19 @@ def fit_accel_multiposition(
     drift_order: int = DRIFT_ORDER,
     correlated_noise: bool = CORRELATED,
     flicker_b_mps2: np.ndarray | None = None,
+    noise_prior: DeviceNoisePrior | None = None,
 ) -> AccelMultipositionFit:
     """[SEED000] eq. 21-22 / [SEED003] eq. 10: X = (A^T W A)^-1 A^T W Z per accelerometer axis, any schedule.
 
     Only static plateaus by default (rate plateaus carry centripetal terms the reference does not model).
     K2 and Kc are optional columns: fitted where the schedule separates them, otherwise unobservable.
+    ``noise_prior``: the device's 1/f level from its static records
+    (:class:`~assets_lib.calibration.noise_prior.DeviceNoisePrior`); for an accelerometer channel it has, it replaces
+    the run's B (two-sided: B with its interval's dof; a bound: B <= bound integrated) and the bias coefficient's note
+    names the record. Not together with ``flicker_b_mps2`` (ValueError).
     """
+    if noise_prior is not None and flicker_b_mps2 is not None:
+        raise ValueError("give the 1/f level either as flicker_b_mps2 or as noise_prior, not both")
     p, pre = select_rows(plateaus, kinds, use_flagged)
     if p.empty:
         raise ValueError(f"no plateaus of kind {kinds}")
@@ -217,11 +237,15 @@ def fit_accel_multiposition(
         A = np.column_stack(cols)
         y = p[f"accel_{a}_mps2_mean"].to_numpy(float)
         sig = p[f"accel_{a}_mps2_sem"].to_numpy(float) if sig_ok else None
+        ch = f"accel_{a}_mps2"
+        dp = prior_flicker(noise_prior, ch)
+        if dp is None:  # the run's own B (or the given flicker_b_mps2), as before
+            dp = (None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])),
+                  _b_law(p, ch) if use_b_dof else None, "")
+        f_tau2, f_dof, b_source = dp
         fit = fit_linear(A, y, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha, nuisance=np.array(nuisance),
-                         times=_times(p) if correlated_noise else None,
-                         flicker_tau2=None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])),
-                         flicker_tau2_dof=_b_law(p, f"accel_{a}_mps2") if use_b_dof else None)
+                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
         ks = names.index("scale_factor")
         mis = {}
         for j in others:
@@ -236,7 +260,7 @@ def fit_accel_multiposition(
         kc = {AXES[j]: (_vs(fit, f"cross_coupling_{a}{AXES[j]}", per_g2) if cross_coupling
                         else Coefficient.with_coverage(np.nan, np.nan, per_g2, False, fit.k95)) for j in others}
         axes.append(AccelAxisFit(a, fit, A, _vs(fit, "scale_factor", "1"), _vs(fit, "bias", "m/s^2"), mis, k2, kc,
-                                 fit.n_used, _n_samples(p, fit.used)))
+                                 fit.n_used, _n_samples(p, fit.used), b_source))
     return AccelMultipositionFit(dev, run, tuple(axes), p)
 
 
@@ -249,6 +273,7 @@ class GyroStaticAxisFit:
     earth_removed_with: str
     n_plateaus: int
     n_samples: int
+    b_source: str = ""  # where the 1/f level B came from when not the run's plateaus (the device's static record)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,7 +295,8 @@ class GyroStaticFit:
                           n_plateaus=ax.n_plateaus, n_samples=ax.n_samples, method=METHOD_GYRO, dof=f.dof,
                           cov_policy=f.cov_policy)
             rows.append(coefficient_row(coefficient="bias", estimate=ax.bias_radps,
-                                        note=f"earth rate removed with {ax.earth_removed_with}", **common))
+                                        note=with_source(f"earth rate removed with {ax.earth_removed_with}",
+                                                         ax.b_source), **common))
             for a, c in ax.g_sensitivity.items():
                 k = f.names.index(f"g_sensitivity_{a}")
                 rows.append(coefficient_row(coefficient=f"g_sensitivity_{a}", estimate=c,
@@ -299,12 +325,16 @@ def fit_gyro_static(
     rel_tol: float = DEFAULT_REL_TOL,
     use_flagged: bool = False,
     correlated_noise: bool = True,
+    noise_prior: DeviceNoisePrior | None = None,
 ) -> GyroStaticFit:
     """[SEED000] eq. 17-20: gyro biases from static positions with the earth-rate projection removed.
 
     The reference ``omega_ref_*`` (= ``omega_earth_*`` for static plateaus) is mapped through the rate fit's
     [K_i (e_i + E_i)] rows (their covariance propagated), or through the given ``scale_factor`` /
     ``misalignment_rad`` (no uncertainty), or nominal (K = 1, E = 0: the canonical outputs' nominal scale).
+    ``noise_prior``: the device's 1/f level from its static records
+    (:class:`~assets_lib.calibration.noise_prior.DeviceNoisePrior`) replaces the run's B for the gyro channels it has
+    (two-sided: B with its interval's dof; a bound: B <= bound integrated); the bias note names the record.
     """
     p, pre = select_rows(plateaus, ("static",), use_flagged)
     if p.empty:
@@ -337,11 +367,12 @@ def fit_gyro_static(
                 scales.append(g_fs)
                 optional.append(True)
         A = np.column_stack(cols)
+        ch = f"gyro_{a}_radps"
+        dp = prior_flicker(noise_prior, ch)
+        f_tau2, f_dof, b_source = dp or (flicker_prior_tau2(flicker_b(p, ch)), _b_law(p, ch), "")
         fit = fit_linear(A, z, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,
-                         times=_times(p) if correlated_noise else None,
-                         flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")),
-                         flicker_tau2_dof=_b_law(p, f"gyro_{a}_radps"))
+                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
         if np.any(Cm):
             # x = P z with z = y - W m: Cov += P W Cm W^T P^T (rate-fit uncertainty of the earth-rate projection)
             obs = np.flatnonzero(fit.observable)
@@ -354,7 +385,8 @@ def fit_gyro_static(
             cov[np.ix_(obs, obs)] += PW @ Cm @ PW.T
             fit = replace(fit, cov=cov)
         gs = {AXES[j]: _vs(fit, f"g_sensitivity_{AXES[j]}", "rad/s/(m/s^2)") for j in range(3)} if use_g else {}
-        out.append(GyroStaticAxisFit(a, fit, _vs(fit, "bias", "rad/s"), gs, src, fit.n_used, _n_samples(p, fit.used)))
+        out.append(GyroStaticAxisFit(a, fit, _vs(fit, "bias", "rad/s"), gs, src, fit.n_used, _n_samples(p, fit.used),
+                                     b_source))
     return GyroStaticFit(dev, run, tuple(out), p)
 
 

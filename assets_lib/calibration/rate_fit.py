@@ -68,7 +68,17 @@ from assets_lib.calibration.fit_core import (
     flicker_gls,
     flicker_prior_tau2,
 )
-from assets_lib.calibration.fit_report import coefficient_frame, coefficient_row, plot_rate_residuals_png, residual_frame
+from assets_lib.calibration.fit_report import (
+    coefficient_frame,
+    coefficient_row,
+    plot_rate_residuals_png,
+    residual_frame,
+)
+from assets_lib.calibration.noise_prior import (
+    DeviceNoisePrior,
+    prior_flicker,
+    with_source,
+)
 from assets_lib.calibration.saturation import detect_saturation
 from assets_lib.calibration.triad import AXES, off_diagonal_matrix
 from assets_lib.coefficient import Z95, Coefficient, ratio_with_stderr
@@ -280,6 +290,7 @@ class GyroAxisRateFit:
     n_plateaus: int
     n_samples: int
     bias_reference_force_mps2: np.ndarray | None = None  # set when G is not separable: bias = b + G f_bar
+    b_source: str = ""  # where the 1/f level B came from when not the run's plateaus (the device's static record)
 
     def linear_row(self) -> tuple[np.ndarray, np.ndarray]:
         """[a_ix, a_iy, a_iz] = K_i (e_i + E_i) and its covariance; unobservable entries at nominal with 0 var."""
@@ -356,7 +367,8 @@ class GyroRateFit:
                 fb = ", ".join(f"{v:.3f}" for v in ax.bias_reference_force_mps2)
                 bnote = (f"bias at the schedule's mean specific force f_bar = [{fb}] m/s^2: b + G f_bar (g-sensitivity "
                          "not separable from the bias in this schedule; see the static multi-position fit)")
-            rows.append(coefficient_row(coefficient="bias", estimate=ax.bias_radps, note=bnote, **common))
+            rows.append(coefficient_row(coefficient="bias", estimate=ax.bias_radps, note=with_source(bnote, ax.b_source),
+                                        **common))
             for a, c in ax.misalignment_rad.items():
                 k = f.names.index(f"misalignment_{ax.axis}{a}")
                 note = f.unobservable_reason[k] or ("" if c.observable else "needs the scale factor of this axis, "
@@ -430,7 +442,7 @@ def _times(p: pd.DataFrame):
 
 
 def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alpha, rel_tol,
-              correlated_noise=True) -> GyroAxisRateFit:
+              correlated_noise=True, noise_prior=None) -> GyroAxisRateFit:
     a = AXES[i]
     om = _omega(p)
     fr = _force(p)
@@ -480,11 +492,14 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
     note = compression_note(om[:, i], sweep, sat)
     tm = _times(p) if correlated_noise else None
     rate_rows = sweep & (p["kind"].to_numpy() == "rate") & (np.linalg.norm(om, axis=1) > 3.0 * EARTH_RATE_RADPS)
+    ch = f"gyro_{a}_radps"
+    # the device's static-record B when given (noise_prior), else the run's own (segmentation's pooled Allan fit)
+    dp = prior_flicker(noise_prior, ch)
+    f_tau2, f_dof, b_source = dp or (flicker_prior_tau2(flicker_b(p, ch)), flicker_b_dof(p, ch), "")
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=optional, rel_tol=rel_tol, pre_excluded=pre_i,
                      outlier_test=outlier_test, alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(om[:, i], rate_rows), nuisance=nuisance,
-                     times=tm, flicker_tau2=flicker_prior_tau2(flicker_b(p, f"gyro_{a}_radps")),
-                     flicker_tau2_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
+                     times=tm, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
     ks = names.index("scale_factor")
     K, sK = fit.get("scale_factor")
     b, sb = fit.get("bias")
@@ -538,7 +553,7 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
         axis=a, fit=fit, design=A, scale_factor=Coefficient.with_coverage(K, sK, "1", bool(fit.observable[ks]), fit.k95),
         bias_radps=Coefficient.with_coverage(b, sb, "rad/s", bool(fit.observable[kb]), fit.k95),
         misalignment_rad=mis, g_sensitivity=gs, sweep=st, saturated=sat, n_plateaus=fit.n_used,
-        n_samples=_n_samples(p, fit.used), bias_reference_force_mps2=bias_force,
+        n_samples=_n_samples(p, fit.used), bias_reference_force_mps2=bias_force, b_source=b_source,
     )
 
 
@@ -625,12 +640,16 @@ def fit_gyro_rate(
     use_flagged: bool = False,
     cross_check: bool = True,
     correlated_noise: bool = True,
+    noise_prior: DeviceNoisePrior | None = None,
 ) -> GyroRateFit:
     """[SEED003] eq. 3 / [SEED000] eq. 6-13: per-axis WLS gyro rate fit over a plateau table (see module doc).
 
     ``plateaus``: PLATEAU TABLE rows (kind 'rate', plus 'static' when ``include_static``) of one device and
     run. Flagged rows are excluded (reason kept) unless ``use_flagged``. ``g_sensitivity='auto'`` adds
-    g-sensitivity columns, kept only where the schedule separates them from the bias.
+    g-sensitivity columns, kept only where the schedule separates them from the bias. ``noise_prior``: the device's
+    1/f level from its static records (:class:`~assets_lib.calibration.noise_prior.DeviceNoisePrior`); for a gyro
+    channel it has, it replaces the run's B (two-sided: B with its interval's dof; a bound: B <= bound integrated),
+    and the bias coefficient's note names the record. None: the run's own B, as before.
     """
     kinds = ("rate", "static") if include_static else ("rate",)
     p, pre = select_rows(plateaus, kinds, use_flagged)
@@ -641,7 +660,8 @@ def fit_gyro_rate(
     sigma_ok = all(f"gyro_{a}_radps_sem" in p for a in AXES)
     axes = tuple(
         _fit_axis(p, pre, i, sigma_ok=sigma_ok, g_sens=g_sensitivity, outlier_test=outlier_test,
-                  saturation_test=saturation_test, alpha=alpha, rel_tol=rel_tol, correlated_noise=correlated_noise)
+                  saturation_test=saturation_test, alpha=alpha, rel_tol=rel_tol, correlated_noise=correlated_noise,
+                  noise_prior=noise_prior)
         for i in range(3)
     )
     diff = difference_method(p, [~ax.fit.used for ax in axes], rel_tol=rel_tol, sigma_ok=sigma_ok) if cross_check else None
