@@ -199,7 +199,8 @@ def score(base: dict, rf, af, gs, truth: dict, means: dict | None = None) -> lis
 
 def trial(args: tuple) -> list[dict]:
     """One device, one rate run and one position run, fitted as the stages fit them; args (seed, k, quick[,
-    noise_every]): the noise scoring runs on trials with k % noise_every == 0 (0: never)."""
+    noise_every[, static_s]]): the noise scoring runs on trials with k % noise_every == 0 (0: never); ``static_s``
+    (see ``--static-s``) gives the device a static record whose B the fits take where it is resolved."""
     from assets_lib.calibration.multiposition import (
         fit_accel_multiposition,
         fit_gyro_static,
@@ -212,7 +213,9 @@ def trial(args: tuple) -> list[dict]:
     from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
     from raw_schemas.readers import ingest_frames
 
-    seed, k, quick, noise_every = (*args, 1) if len(args) == 3 else args
+    seed, k, quick = args[:3]
+    noise_every = args[3] if len(args) > 3 else 1
+    static_s = args[4] if len(args) > 4 else None  # --static-s: the device's static record (none: the run's own B)
     rate_names, pos_names = QUICK if quick else (tuple(RATE_PLANS), tuple(POS_PLANS))
     grade = GRADES[k % len(GRADES)]
     rate_plan = rate_names[(k // len(GRADES)) % len(rate_names)]
@@ -240,9 +243,10 @@ def trial(args: tuple) -> list[dict]:
         plates[m] = segment_run(ing.manifest, ing.imu, ing.table).plateaus
     # the blocking gate of the plateaus stage: a run with too few usable plateaus gets no fit and no record
     passed = [float((~plates[m]["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION for m in (0, 1)]
-    rf = fit_gyro_rate(plates[0]) if passed[0] else None  # stage gyro_rate_fit
-    af = fit_accel_multiposition(plates[1]) if passed[1] else None  # stage accel_multiposition_fit
-    gs = fit_gyro_static(plates[1]) if passed[1] else None  # same stage: no rate_fit, nominal earth-rate removal
+    prior = static_prior(dev, seed, k, _static_seconds(static_s, grade))  # the stages' sibling read of it
+    rf = fit_gyro_rate(plates[0], noise_prior=prior) if passed[0] else None  # stage gyro_rate_fit
+    af = fit_accel_multiposition(plates[1], noise_prior=prior) if passed[1] else None  # stage accel_multiposition_fit
+    gs = fit_gyro_static(plates[1], noise_prior=prior) if passed[1] else None  # same stage: no rate_fit
     g, a = dev.gyro, dev.accel
     truth = _truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
                    np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
@@ -262,6 +266,47 @@ def trial(args: tuple) -> list[dict]:
     if noise_every > 0 and k % noise_every == 0:
         rows += noise_rows(base, seed, k)
     return rows
+
+
+def _static_seconds(static_s, grade: str) -> float:
+    """Seconds of the trial device's static record: ``static_s`` a number for every grade or {grade: seconds}."""
+    if not static_s:
+        return 0.0
+    return float(static_s.get(grade, 0.0)) if isinstance(static_s, dict) else float(static_s)
+
+
+def parse_static(text: str | None):
+    """``--static-s``: '0' (no static record), '10800' (every grade) or 'navigation=28800,tactical=10800,...'."""
+    if not text:
+        return None
+    if "=" not in text:
+        return float(text)
+    out = {}
+    for part in text.split(","):
+        g, v = part.split("=")
+        if g.strip() not in GRADES:
+            raise SystemExit(f"--static-s: grade {g.strip()!r} is not one of {GRADES}")
+        out[g.strip()] = float(v)
+    return out
+
+
+def static_prior(dev, seed: int, k: int, seconds: float):
+    """The device's static record of ``seconds`` (none at 0) through the ``allan_deviation`` stage's computation and
+    the prior the calibration stages build from it (``assets_lib.calibration.noise_prior.device_noise_prior``, what
+    ``gyro_rate_fit`` and ``accel_multiposition_fit`` read as siblings); None without a record."""
+    if not seconds > 0:
+        return None
+    from assets_lib.calibration.noise_prior import device_noise_prior
+    from assets_lib.sim.simulator import simulate_run
+    from assets_lib.stages.noise import allan_tables
+    from raw_schemas.readers import ingest_frames
+
+    sim = simulate_run(dev, "static_long", f"mc{seed}-{k}-static", seed=seed * 1_000_000 + 10 * k + 5, table_log=False,
+                       plan_kwargs={"static_duration_s": float(seconds)})
+    ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
+    tables = allan_tables(f"{dev.device_id}__{ing.manifest.run_id}", ing.imu,
+                          {"sample_rate_hz": ing.manifest.sample_rate_hz, "run_id": ing.manifest.run_id})[0]
+    return device_noise_prior([tables["noise"]], [tables["static_terms"]], [ing.manifest.run_id])
 
 
 def nonlinearity_effect(grade: str, rng: np.random.Generator):
@@ -533,11 +578,11 @@ def markdown(tabs: dict, meta: dict) -> str:
 
 
 def run(seed: int, trials: int, workers: int = 1, quick: bool = False, budget_s: float | None = None,
-        noise_every: int = NOISE_EVERY) -> pd.DataFrame:
+        noise_every: int = NOISE_EVERY, static_s=None) -> pd.DataFrame:
     """Trials 0..trials-1; with ``budget_s`` no trial starts after that many seconds (the trials done are scored:
     a shared machine's honest partial run instead of a killed one)."""
     t0 = time.time()
-    jobs = [(seed, k, quick, noise_every) for k in range(trials)]
+    jobs = [(seed, k, quick, noise_every, static_s) for k in range(trials)]
     recs: list[dict] = []
 
     def in_time():
@@ -582,18 +627,24 @@ def main(argv=None):
                     help="score the noise intervals (benchmarks/coverage_noise.py) on every N-th trial; 0: never "
                          f"(default {NOISE_EVERY}: a noise trial costs about as much as a calibration trial, and the "
                          "noise families have their own acceptance run, benchmarks/coverage_noise.py)")
+    ap.add_argument("--static-s", default=None,
+                    help="each trial's device also has a static record of this many seconds ('10800', or per grade "
+                         "'navigation=28800,tactical=10800,consumer=3600'), whose allan_deviation output the fits "
+                         "take as the device's B (the stages' sibling read); default none: the run's own B")
     args = ap.parse_args(argv)
+    static_s = parse_static(args.static_s)
     t0 = time.time()
     noise_on = args.noise_every > 0 and _noise_module() is not None
     if _noise_module() is None:
         print("benchmarks/coverage_noise.py (score_noise) not found: noise terms not scored in this run", file=sys.stderr)
-    df = run(args.seed, args.trials, args.workers, args.plans == "quick", args.budget_s, args.noise_every)
+    df = run(args.seed, args.trials, args.workers, args.plans == "quick", args.budget_s, args.noise_every, static_s)
     tabs = summarize(df)
     done = int(df["trial"].nunique()) if len(df) else 0
     cmd = (f"python benchmarks/mc_calibration_coverage.py --seed {args.seed} --trials {args.trials} "
            f"--workers {args.workers} --plans {args.plans}"
            + (f" --budget-s {args.budget_s:g}" if args.budget_s is not None else "")
-           + (f" --noise-every {args.noise_every}" if args.noise_every != NOISE_EVERY else ""))
+           + (f" --noise-every {args.noise_every}" if args.noise_every != NOISE_EVERY else "")
+           + (f" --static-s {args.static_s}" if args.static_s else ""))
     meta = {"seed": args.seed, "trials": done, "trials_requested": args.trials, "plans": args.plans,
             "seconds": round(time.time() - t0, 1), "command": cmd, "noise_scored": noise_on}
     text = markdown(tabs, meta)

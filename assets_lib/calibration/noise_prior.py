@@ -27,7 +27,8 @@ Measured on the dev cache (benchmarks/README.md, "Device noise prior (library, n
 records the navigation and tactical gyro biases' z sd 0.75-0.92 -> 0.98-1.09; a 20-min record's navigation bound
 (6.5x the truth) leaves the rate fit wide (0.80 -> 0.70), and a bound at ~1x the truth is too narrow (z sd 1.6).
 
-Library only: the pipeline stages do not pass a prior yet.
+The pipeline (``assets_lib/stages/calibration.py``) passes :meth:`DeviceNoisePrior.resolved_only` of the device's
+static runs' ``allan_deviation`` outputs (sibling reads) to the fits.
 """
 
 from __future__ import annotations
@@ -114,6 +115,14 @@ class DeviceNoisePrior:
         c = self.get(channel)
         return "" if c is None else c.source
 
+    def resolved_only(self) -> DeviceNoisePrior:
+        """The channels whose B some record resolves (two-sided); the pipeline's choice (``gyro_rate_fit``,
+        ``accel_multiposition_fit``): a bound alone is left to the run's own B, because the bound law is too wide
+        when the bound lies far above the truth (navigation, 20-min record: rate-fit bias z sd 0.80 -> 0.70) and
+        too narrow when it lies close to it (tactical channels still bounded at 3 h: coverage 0.75, z sd 1.62;
+        benchmarks/README.md "Device noise prior")."""
+        return DeviceNoisePrior(tuple(c for c in self.channels if not c.is_upper_bound), self.device_id)
+
     @classmethod
     def from_noise_tables(cls, noise_tables: Sequence[pd.DataFrame], run_ids: Sequence[str],
                           durations_s: Sequence[float], device_id: str = "") -> DeviceNoisePrior:
@@ -146,6 +155,20 @@ class DeviceNoisePrior:
                         bnd[r.channel] = c
         chans = sorted(set(two) | set(bnd))
         return cls(tuple(two[ch][1] if ch in two else bnd[ch] for ch in chans), device_id)
+
+
+def device_noise_prior(noise_tables: Sequence[pd.DataFrame], static_terms: Sequence[pd.DataFrame],
+                       keys: Sequence[str] = ()) -> DeviceNoisePrior | None:
+    """What the pipeline's fits get (``gyro_rate_fit``, ``accel_multiposition_fit``): the prior from the
+    ``allan_deviation`` stage's ``noise`` and ``static_terms`` tables of the device's static runs (run id and record
+    duration from ``static_terms``; ``keys`` name the runs whose ``static_terms`` is empty), the channels some record
+    resolves (:meth:`DeviceNoisePrior.resolved_only`); None without a static run."""
+    if not noise_tables:
+        return None
+    keys = list(keys) or [f"static run {i}" for i in range(len(noise_tables))]
+    run_ids = [str(t["run_id"].iloc[0]) if len(t) else k for t, k in zip(static_terms, keys)]
+    durations = [float(t["duration_s"].iloc[0]) if len(t) else float("nan") for t in static_terms]
+    return DeviceNoisePrior.from_noise_tables(list(noise_tables), run_ids, durations).resolved_only()
 
 
 def prior_flicker(noise_prior: DeviceNoisePrior | None, channel: str):

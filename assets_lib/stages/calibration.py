@@ -11,6 +11,7 @@ from assets_lib.calibration.multiposition import (
     fit_accel_multiposition,
     fit_gyro_static,
 )
+from assets_lib.calibration.noise_prior import DeviceNoisePrior, device_noise_prior
 from assets_lib.calibration.rate_fit import fit_gyro_rate
 from assets_lib.calibration.segmentation import segment_run
 from assets_lib.calibration.fit_core import CHI2_BAND  # noqa: F401 - one band for the check and the record's status
@@ -71,34 +72,52 @@ def plateaus(key: str, inputs) -> StageOutput:
     )
 
 
-@stage("gyro_rate_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
-       applies_to=("rate",))
+def static_noise_prior(inputs) -> DeviceNoisePrior | None:
+    """The device's 1/f level B per channel from its static runs' ``allan_deviation`` outputs (sibling reads: every
+    static capture of the device that passed its gates), :func:`device_noise_prior`; None without a static run."""
+    keys = inputs.sibling_keys("allan_deviation")
+    noise = inputs.sibling_tables("allan_deviation", "noise")
+    terms = inputs.sibling_tables("allan_deviation", "static_terms")
+    return device_noise_prior([noise[k] for k in keys], [terms[k] for k in keys], keys)
+
+
+def _prior_meta(prior: DeviceNoisePrior | None) -> dict:
+    """Where each channel's B came from (the device's static record, or the run's plateaus when absent)."""
+    return {"noise_prior": {} if prior is None else {c.channel: c.source for c in prior.channels}}
+
+
+@stage("gyro_rate_fit", level="capture", group="calibration", code_version="2", upstream=["plateaus"],
+       siblings=["allan_deviation"], applies_to=("rate",))
 def gyro_rate_fit(key: str, inputs) -> StageOutput:
     """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus ([SEED003] eq. 3,
-    [SEED000] eq. 6-13); saturated or wild plateaus excluded automatically and reported."""
-    fit = fit_gyro_rate(inputs.table("plateaus", "plateaus"))
+    [SEED000] eq. 6-13); saturated or wild plateaus excluded automatically and reported; the 1/f level B of the
+    correlated-noise model from the device's static records where they resolve it (:func:`static_noise_prior`)."""
+    prior = static_noise_prior(inputs)
+    fit = fit_gyro_rate(inputs.table("plateaus", "plateaus"), noise_prior=prior)
     coef = fit.coefficient_table()
     resid = fit.residual_table()
     return StageOutput(
         tables={"coefficients": coef, "residuals": resid},
-        meta={"excluded": _excluded(resid)},
+        meta={"excluded": _excluded(resid), **_prior_meta(prior)},
         summary=_coef_summary(coef, "gyro", ("scale_factor",)),
     )
 
 
-@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="1", upstream=["plateaus"],
-       applies_to=("multiposition", "tumble"))
+@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="2", upstream=["plateaus"],
+       siblings=["allan_deviation"], applies_to=("multiposition", "tumble"))
 def accel_multiposition_fit(key: str, inputs) -> StageOutput:
     """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule ([SEED000] eq.
-    21-22, [SEED003]), unobservable terms reported as such; gyro biases from the static positions (eq. 17-20)."""
+    21-22, [SEED003]), unobservable terms reported as such; gyro biases from the static positions (eq. 17-20); B as
+    in ``gyro_rate_fit``."""
     p = inputs.table("plateaus", "plateaus")
-    acc = fit_accel_multiposition(p)
-    gyr = fit_gyro_static(p)
+    prior = static_noise_prior(inputs)
+    acc = fit_accel_multiposition(p, noise_prior=prior)
+    gyr = fit_gyro_static(p, noise_prior=prior)
     coef = pd.concat([acc.coefficient_table(), gyr.coefficient_table()], ignore_index=True)
     resid = pd.concat([acc.residual_table(), gyr.residual_table()], ignore_index=True)
     return StageOutput(
         tables={"coefficients": coef, "residuals": resid},
-        meta={"excluded": _excluded(resid)},
+        meta={"excluded": _excluded(resid), **_prior_meta(prior)},
         summary=_coef_summary(coef, "accel", ("bias",)),
     )
 

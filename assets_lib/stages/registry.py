@@ -6,11 +6,11 @@ from assets_lib.stages.engine import StageGraph
 
 STAGES = StageGraph([
     ingest.ingested_run,
+    noise.allan_deviation,  # before the fits: they read the device's static runs' noise (siblings)
     calibration.plateaus,
     calibration.gyro_rate_fit,
     calibration.accel_multiposition_fit,
     tablefree.tablefree_fit,
-    noise.allan_deviation,
     repeatability.repeatability,
     records.calibration_record,
     records.certificate,
