@@ -94,11 +94,12 @@ Undetected 1/f level (B = 0) on a schedule with < 3 residual dof (the 6-position
     right at every grade needs information from outside the run (the device's long static Allan record as a prior
     on B), which the calibration fits do not receive today.
 
-Device noise prior (:mod:`assets_lib.calibration.noise_prior`, library; the stages do not pass it yet)
+Device noise prior (:mod:`assets_lib.calibration.noise_prior`)
     The fits can take B from the device's static records instead of the run's plateaus: a two-sided estimate as
     ``flicker_tau2`` with the dof of its interval (:func:`flicker_dof_from_interval`), integrated as above; an upper
     bound as :class:`FlickerBoundLaw` (tau^2 <= bound^2 / pi, flat in tau, times the plateaus' REML), never as B.
-    Measured on the dev cache (benchmarks/README.md, "Device noise prior (library, not wired)").
+    The stages pass the two-sided ones only (``DeviceNoisePrior.resolved_only``); measured on the dev cache
+    (benchmarks/README.md, "Device noise prior").
 """
 
 from __future__ import annotations

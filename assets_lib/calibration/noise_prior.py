@@ -23,7 +23,7 @@ estimate with the narrowest relative interval (smallest ci_hi / ci_lo) if any re
 upper bound. B is a property of the device (its noise spectrum), so a static record of another power cycle serves;
 a device whose noise changed (ageing, a repair) needs its records filtered by the caller.
 
-Measured on the dev cache (benchmarks/README.md, "Device noise prior (library, not wired)"): with 3 h or 8 h
+Measured on the dev cache (benchmarks/README.md, "Device noise prior"): with 3 h or 8 h
 records the navigation and tactical gyro biases' z sd 0.75-0.92 -> 0.98-1.09; a 20-min record's navigation bound
 (6.5x the truth) leaves the rate fit wide (0.80 -> 0.70), and a bound at ~1x the truth is too narrow (z sd 1.6).
 
