@@ -255,13 +255,13 @@ def trial(args: tuple) -> list[dict]:
             "asymmetry_injected": eps is not None, "nonlinearity_injected": nonlin is not None}
     gate = [dict(base, sensor="gate", axis="", coefficient=f"{kind}_run_passed", fit="gate", value=np.nan,
                  stderr=np.nan, truth=np.nan, z=np.nan, covered=ok) for kind, ok in zip(("rate", "position"), passed)]
-    means = rate_means(plates[0]) if passed[0] else None
+    means = rate_means(plates[0], prior) if passed[0] else None
     if nonlin is None:
         rows = gate + score(base, rf, af, gs, truth, means)
     else:  # the rate run's other coefficients absorb the injected curve (truth not the device's): scored elsewhere
         rows = gate + score(base, None, af, gs, truth) + nonlinearity_rows(base, plates[0], means or {}, dev, nonlin)
     if passed[1]:
-        rows += tumble_rows(base, plates[1], dev)
+        rows += tumble_rows(base, plates[1], dev, prior)
     rows += tablefree_rows(base, seed, k)
     if noise_every > 0 and k % noise_every == 0:
         rows += noise_rows(base, seed, k)
@@ -399,13 +399,13 @@ def noise_rows(base: dict, seed: int, k: int) -> list[dict]:
 TUMBLE_COEFFICIENTS = ("K0", "K1", "K2", "K3", "delta_o_term", "bias", "K2_per_K1", "K3_per_K1", "misalignment")
 
 
-def tumble_rows(base: dict, p: pd.DataFrame, dev) -> list[dict]:
+def tumble_rows(base: dict, p: pd.DataFrame, dev, prior=None) -> list[dict]:
     """``imulab fit tumble --misalignment-term`` (fit_tumble_means, [SEED001] eq. 5-7) on every accelerometer axis
     that a position plan tumbles through a full turn in one plane (the seed 001 plan: x and z about y): angle
     theta with f_i = g sin theta, plateau mean, sem, times and the run's 1/f level. Truth: the same model fitted to
     the noise-free error model (docs/design.md: M f + b + K2 f^2 + f_i Kc_i.f) at the plateaus' reference forces;
-    exact, because on one plane every quadratic in (sin, cos) lies in the span of 1, sin, cos, sin^2, sin cos."""
-    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof
+    exact, because on one plane every quadratic in (sin, cos) lies in the span of 1, sin, cos, sin^2, sin cos.
+    The 1/f level: :func:`flicker_options` (the device's static record, else the run's own)."""
     from assets_lib.calibration.means_fit import fit_tumble_means
 
     ok = ~p["flagged"].astype(bool).to_numpy() & (p["kind"].to_numpy() == "static")
@@ -430,7 +430,7 @@ def tumble_rows(base: dict, p: pd.DataFrame, dev) -> list[dict]:
             times = (q["t_start_s"].to_numpy(float), q["t_end_s"].to_numpy(float))
             fit = fit_tumble_means(th, q[f"accel_{a}_mps2_mean"].to_numpy(float), q[f"accel_{a}_mps2_sem"].to_numpy(float),
                                    output_unit="m/s^2", misalignment_term=True, times=times,
-                                   flicker_b=flicker_b(p, f"accel_{a}_mps2"), flicker_b_dof=flicker_b_dof(p, f"accel_{a}_mps2"))
+                                   **flicker_options(p, f"accel_{a}_mps2", prior))
             tru = fit_tumble_means(th, det[:, ax], None, output_unit="m/s^2", misalignment_term=True, exclusion="none")
             for c in TUMBLE_COEFFICIENTS:
                 co, ct = fit.coefficient(c), tru.coefficient(c)
@@ -480,11 +480,25 @@ def means_rows(p: pd.DataFrame) -> dict[str, np.ndarray]:
     return out
 
 
-def rate_means(p: pd.DataFrame) -> dict:
+def flicker_options(p: pd.DataFrame, channel: str, prior=None) -> dict:
+    """The 1/f level a lab passes to ``imulab fit`` for ``channel``: the device's static record as ``imulab allan``
+    prints it when it has one (``--flicker-b B --flicker-b-ci LO HI``, or ``--flicker-b-ci 0 BOUND`` where the record
+    only bounds B), as the pipeline's stages read it; else the run's own (segmentation's ``*_flicker_b``, with its
+    degrees of freedom)."""
+    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof, flicker_dof_from_interval
+
+    c = None if prior is None else prior.get(channel)
+    if c is not None and c.is_upper_bound:
+        return {"flicker_b_max": c.bound}
+    if c is not None:
+        return {"flicker_b": c.b, "flicker_b_dof": flicker_dof_from_interval(c.b, c.ci_lo, c.ci_hi, c.ci_level)}
+    return {"flicker_b": flicker_b(p, channel), "flicker_b_dof": flicker_b_dof(p, channel)}
+
+
+def rate_means(p: pd.DataFrame, prior=None) -> dict:
     """``imulab fit rate`` (fit_rate_means) on each axis' sweep as a lab would tabulate it: table rate about the
-    axis, plateau mean and sem of that axis, plateau start/end times and the run's 1/f level B (segmentation's
-    ``*_flicker_b``) for the correlated-noise model."""
-    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof
+    axis, plateau mean and sem of that axis, plateau start/end times and the 1/f level B for the correlated-noise
+    model (:func:`flicker_options`: the device's static record, else the run's own)."""
     from assets_lib.calibration.means_fit import fit_rate_means
 
     om = p[[f"omega_ref_{a}_radps" for a in AX]].to_numpy(float)
@@ -497,8 +511,7 @@ def rate_means(p: pd.DataFrame) -> dict:
                 times = (p.loc[rows, "t_start_s"].to_numpy(float), p.loc[rows, "t_end_s"].to_numpy(float))
             out[a] = fit_rate_means((om - ea)[rows, i], p.loc[rows, f"gyro_{a}_radps_mean"].to_numpy(float),
                                     p.loc[rows, f"gyro_{a}_radps_sem"].to_numpy(float), rate_unit="rad/s",
-                                    output_unit="rad/s", times=times, flicker_b=flicker_b(p, f"gyro_{a}_radps"),
-                                    flicker_b_dof=flicker_b_dof(p, f"gyro_{a}_radps"))
+                                    output_unit="rad/s", times=times, **flicker_options(p, f"gyro_{a}_radps", prior))
     return out
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from click.testing import CliRunner
 
 from imulab.cli import main
@@ -145,6 +146,28 @@ def test_fit_rate_cli_times_and_flicker_level_are_the_scored_fit(tmp_path):
     assert np.isclose(json.loads(out3.read_text())["flicker_b_dof"], flicker_dof_from_interval(3e-4, 2e-4, 5e-4))
 
 
+def test_fit_rate_cli_takes_an_upper_bound_on_b(tmp_path):
+    """A record that only bounds B (imulab allan prints [0, bound]): `--flicker-b-ci 0 BOUND` alone integrates the 1/f
+    level below the bound (fit_rate_means(flicker_b_max=...)), which is narrower than taking the bound as B."""
+    from assets_lib.calibration.means_fit import fit_rate_means
+
+    f, rates, means, sem, times = _rate_table_with_times(tmp_path)
+    out = tmp_path / "b.json"
+    r = CliRunner().invoke(main, ["fit", "rate", "--means", str(f), "--rate-column", "rate_dps", "--output-column",
+                                  "mean_V", "--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s",
+                                  "--flicker-b-ci", "0", "6e-4", "--json", str(out)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(out.read_text())
+    assert d["flicker_b_max"] == 6e-4 and d["flicker_b"] is None
+    ref = fit_rate_means(rates, means, sem, output_unit="V", times=times, flicker_b_max=6e-4)
+    exact = fit_rate_means(rates, means, sem, output_unit="V", times=times, flicker_b=6e-4)
+    got = {c["name"]: c["stderr"] for c in d["coefficients"]}
+    assert np.isclose(got["zero_output"], ref.coefficient("zero_output").stderr, rtol=1e-12)
+    assert got["zero_output"] < 0.9 * exact.coefficient("zero_output").stderr
+    with pytest.raises(ValueError, match="not both"):
+        fit_rate_means(rates, means, sem, times=times, flicker_b=1e-4, flicker_b_max=6e-4)
+
+
 def test_fit_cli_noise_options_fail_clearly(tmp_path):
     f = _rate_table_with_times(tmp_path)[0]
     base = ["fit", "rate", "--means", str(f), "--rate-column", "rate_dps", "--output-column", "mean_V"]
@@ -152,9 +175,12 @@ def test_fit_cli_noise_options_fail_clearly(tmp_path):
         (["--sem-column", "sem_V", "--start-column", "t0_s"], "go together"),
         (["--start-column", "t0_s", "--end-column", "t1_s"], "--sem-column"),
         (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "nope"], "no column 'nope'"),
-        (["--sem-column", "sem_V", "--flicker-b", "1e-4"], "needs the plateau times"),
+        (["--sem-column", "sem_V", "--flicker-b", "1e-4"], "need the plateau times"),
         (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b", "1e-4",
           "--flicker-b-ci", "0", "2e-4"], "upper bound"),
+        (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b-ci", "0", "-1"],
+         "positive number"),
+        (["--sem-column", "sem_V", "--flicker-b-ci", "0", "2e-4"], "need the plateau times"),
     ]
     for extra, msg in cases:
         r = CliRunner().invoke(main, base + extra)

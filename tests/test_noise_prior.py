@@ -174,3 +174,30 @@ def test_two_sided_device_prior_narrows_a_navigation_rate_bias_interval(nav_runs
         assert f1.axes[i].fit.cov_policy == "marginal"
         assert f1.axes[i].fit.flicker_tau2 == pytest.approx(b[i] ** 2 / np.pi, rel=0.3)
     assert all("static record S8h" in ax.b_source for ax in f1.axes)
+
+
+def test_a_bound_truncates_the_runs_own_law(nav_runs):
+    """Where the device's record only bounds B (a navigation gyro: 2.4x the truth at 3 h), the fit keeps what its run
+    says (the censored Allan law of its plateaus) and cuts it at the bound: the law is the run's inside the support,
+    -inf above; the run's B read at 7-10x the truth gives way to a level below the bound, and the bias interval
+    narrows against the run's own."""
+    from assets_lib.calibration.fit_core import FlickerLaw, flicker_law
+    from assets_lib.calibration.noise_prior import prior_flicker
+
+    dev, p, _ = nav_runs
+    b = np.array([dev.gyro.noise[i].b for i in range(3)])
+    nt = _noise_rows([(f"gyro_{a}_radps", np.nan, 0.0, 2.4 * b[i], True) for i, a in enumerate("xyz")])
+    pr = DeviceNoisePrior.from_noise_tables([nt], ["S3h"], [10800.0])
+    t2, law, source = prior_flicker(pr, "gyro_x_radps", p)
+    run = flicker_law(p, "gyro_x_radps")
+    assert isinstance(law, FlickerBoundLaw) and isinstance(law.inner, FlickerLaw) and run is not None
+    assert t2 == pytest.approx((2.4 * b[0]) ** 2 / np.pi) and "upper bound" in source
+    for f in (0.01, 0.3, 0.99):
+        assert law.loglik(f * t2) == pytest.approx(run.loglik(f * t2))
+    assert law.loglik(1.01 * t2) == -np.inf
+    assert prior_flicker(pr, "gyro_x_radps")[1].inner is None  # without the plateaus: the bound alone
+    f0, f1 = fit_gyro_rate(p), fit_gyro_rate(p, noise_prior=pr)
+    for i in (0, 1):
+        assert 0 < f1.axes[i].fit.flicker_tau2 < (2.4 * b[i]) ** 2 / np.pi
+        assert f1.axes[i].bias_radps.stderr < 0.8 * f0.axes[i].bias_radps.stderr
+        assert "upper bound" in f1.axes[i].b_source

@@ -20,7 +20,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from assets_lib.calibration.fit_core import DEFAULT_ALPHA, DEFAULT_REL_TOL, LinearFit, fit_linear, flicker_prior_tau2
+from assets_lib.calibration.fit_core import (
+    DEFAULT_ALPHA,
+    DEFAULT_REL_TOL,
+    FlickerBoundLaw,
+    LinearFit,
+    fit_linear,
+    flicker_prior_tau2,
+)
 from assets_lib.calibration.rate_fit import compression_note, sweep_asymmetry, sweep_nonlinearity, sweep_screen_columns
 from assets_lib.calibration.saturation import detect_saturation
 from assets_lib.coefficient import Coefficient, ratio_with_stderr
@@ -155,6 +162,19 @@ def _plateau_times(times, n: int):
     return 0.5 * (a + b), b - a
 
 
+def _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max):
+    """(flicker_tau2, flicker_tau2_dof) for :func:`fit_linear` from B (with its dof) or from a bound on it only
+    (tau^2 <= bound^2 / pi, :class:`FlickerBoundLaw`); ValueError for both, or a bound that is not positive."""
+    if flicker_b_max is None:
+        return flicker_prior_tau2(flicker_b), flicker_b_dof
+    if flicker_b is not None or flicker_b_dof is not None:
+        raise ValueError("give the 1/f level B (with its dof) or only a bound on it (flicker_b_max), not both")
+    if not (np.isfinite(flicker_b_max) and flicker_b_max > 0):
+        raise ValueError(f"flicker_b_max must be a positive bound on B, not {flicker_b_max}")
+    t2 = float(flicker_b_max) ** 2 / np.pi
+    return t2, FlickerBoundLaw(t2)
+
+
 def fit_rate_means(
     rate,
     output,
@@ -168,6 +188,7 @@ def fit_rate_means(
     times=None,
     flicker_b: float | None = None,
     flicker_b_dof: float | None = None,
+    flicker_b_max: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
@@ -183,7 +204,10 @@ def fit_rate_means(
     without them the plateaus are independent, which bias instability breaks (the 1/f noise shared between
     plateaus minutes apart; means-fit K+, K-, asymmetry z sd 1.1-1.5 in the coverage benchmark). ``flicker_b_dof``:
     the degrees of freedom of that B (:func:`~assets_lib.calibration.fit_core.flicker_b_dof` from a plateau table):
-    the fit then integrates over the 1/f level instead of taking B as exact.
+    the fit then integrates over the 1/f level instead of taking B as exact. ``flicker_b_max`` (instead of
+    ``flicker_b``): only an upper bound on B, as an Allan analysis of a record too short to resolve the floor gives
+    it (``imulab allan``'s interval [0, bound]): integrated over below the bound
+    (:class:`~assets_lib.calibration.fit_core.FlickerBoundLaw`).
     """
     _check_mode(exclusion)
     if rate_unit not in GYRO_UNITS_TO_RADPS:
@@ -203,11 +227,11 @@ def fit_rate_means(
     sweep = np.ones(len(w), bool)
     note = compression_note(w, sweep, sat, sign_gain=np.sign(np.nanmedian(np.diff(y[np.argsort(w)])) or 1.0))
     tm = _plateau_times(times, len(w))
-    prior_tau2 = flicker_prior_tau2(flicker_b)
+    prior_tau2, prior_dof = _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max)
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
-                     flicker_tau2=prior_tau2, flicker_tau2_dof=flicker_b_dof)
+                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
     U0, sU0 = fit.get("zero_output")
     K, sK = fit.get("scale_factor")
     k = fit.names.index("scale_factor")
@@ -221,7 +245,7 @@ def fit_rate_means(
                            note="zero output expressed as input rate, U0/K"))
     nz = np.abs(w) > 0
     nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit, A, w, nz, K, tm, flicker_tau2=prior_tau2,
-                                                     flicker_tau2_dof=flicker_b_dof)
+                                                     flicker_tau2_dof=prior_dof)
     ok = bool(np.isfinite(nl))  # the interval is clipped at zero: nonlinearity is a magnitude
     est = Coefficient(nl * 1e6, nls * 1e6, "ppm", ok, max(nl - 1.96 * nls, 0.0) * 1e6, (nl + 1.96 * nls) * 1e6)
     coefs.append(MeansCoefficient("nonlinearity", est,
@@ -232,7 +256,7 @@ def fit_rate_means(
     # line's: a REML under the straight line reads an asymmetry's |w| misfit as 1/f noise (tau^2 up to 1e4x the
     # truth), which widened K+, K- and the asymmetry (z sd 0.55-0.65 with asymmetry injected, coverage 0.99)
     kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol,
-                                                      times=tm, flicker_tau2=prior_tau2)
+                                                      times=tm, flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
     kk = fa.k95 if fa is not None else 1.96
     if fa is not None and np.isfinite(asym) and fa.observable[1]:
         # K = mean(K+, K-) from the hinge fit, as the rate fit reports it: on a symmetric sweep the straight line's
@@ -268,6 +292,7 @@ def fit_tumble_means(
     times=None,
     flicker_b: float | None = None,
     flicker_b_dof: float | None = None,
+    flicker_b_max: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
@@ -275,8 +300,8 @@ def fit_tumble_means(
     K3/K1 [ug/g^2]; with ``misalignment_term`` also delta_o (cos theta term / K1) [rad]. Coefficients the
     positions cannot separate are reported unobservable (e.g. K2 without a horizontal position).
     ``exclusion``: 'auto' (Bonferroni outlier test) or 'none' ('saturation' and 'flat-top' act like 'none').
-    ``times`` / ``flicker_b`` / ``flicker_b_dof``: plateau (t_start_s, t_end_s), the run's 1/f level and its degrees
-    of freedom, as in :func:`fit_rate_means`.
+    ``times`` / ``flicker_b`` / ``flicker_b_dof`` / ``flicker_b_max``: plateau (t_start_s, t_end_s), the run's 1/f
+    level and its degrees of freedom, or only a bound on it, as in :func:`fit_rate_means`.
     """
     _check_mode(exclusion)
     if angle_unit not in ANGLE_UNITS_TO_RAD:
@@ -299,9 +324,10 @@ def fit_tumble_means(
     optional += [True, True]
     A = np.column_stack(cols)
     scales = np.array([1.0, 1.0] + ([1.0] if misalignment_term else []) + [1.0, 0.5])
+    prior_tau2, prior_dof = _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max)
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=np.array(optional), rel_tol=rel_tol,
                      outlier_test=exclusion == "auto", alpha=alpha, times=_plateau_times(times, len(th)),
-                     flicker_tau2=flicker_prior_tau2(flicker_b), flicker_tau2_dof=flicker_b_dof)
+                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
     coefs = []
     units = {"K0": ou, "K1": f"{ou}/g", "K2": f"{ou}/g^2", "K3": f"{ou}/g^2", "delta_o_term": f"{ou}/g"}
     for j, nm in enumerate(names):

@@ -238,7 +238,7 @@ def fit_accel_multiposition(
         y = p[f"accel_{a}_mps2_mean"].to_numpy(float)
         sig = p[f"accel_{a}_mps2_sem"].to_numpy(float) if sig_ok else None
         ch = f"accel_{a}_mps2"
-        dp = prior_flicker(noise_prior, ch)
+        dp = prior_flicker(noise_prior, ch, p)
         if dp is None:  # the run's own B (or the given flicker_b_mps2), as before
             dp = (None if flicker_b_mps2 is None else flicker_prior_tau2(float(np.asarray(flicker_b_mps2)[i])),
                   _b_law(p, ch) if use_b_dof else None, "")
@@ -368,7 +368,7 @@ def fit_gyro_static(
                 optional.append(True)
         A = np.column_stack(cols)
         ch = f"gyro_{a}_radps"
-        dp = prior_flicker(noise_prior, ch)
+        dp = prior_flicker(noise_prior, ch, p)
         f_tau2, f_dof, b_source = dp or (flicker_prior_tau2(flicker_b(p, ch)), _b_law(p, ch), "")
         fit = fit_linear(A, z, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,

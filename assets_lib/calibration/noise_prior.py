@@ -14,21 +14,25 @@ What the fits receive per channel (:meth:`DeviceNoisePrior.flicker`), tau^2 = B^
 * two-sided (some record resolves B): tau^2 from B and its degrees of freedom from the interval
   (:func:`flicker_dof_from_interval`, B_hat^2 ~ B^2 chi^2_nu / nu), integrated out with the plateaus' REML
   likelihood as the run's own detected B is (:func:`assets_lib.calibration.fit_core.flicker_gls`);
-* an upper bound only: :class:`~assets_lib.calibration.fit_core.FlickerBoundLaw`, B <= bound (tau^2 flat in tau on
-  [0, bound^2 / pi] times the plateaus' REML likelihood). The bound is not taken as B: it lies 2-7x above the truth
-  and made the intervals wider still (session 9: z sd 0.45 navigation, 0.66 tactical on 20-min records).
+* an upper bound only: :class:`~assets_lib.calibration.fit_core.FlickerBoundLaw`, B <= bound: the run's own Allan
+  law (:func:`~assets_lib.calibration.fit_core.flicker_law` of its plateaus, the censored likelihood) and the
+  plateaus' REML likelihood, prior flat in tau, truncated at bound^2 / pi. The bound is not taken as B: it lies 2-7x
+  above the truth and made the intervals wider still (session 9: z sd 0.45 navigation, 0.66 tactical on 20-min
+  records).
 
 Selection over the device's records (:meth:`DeviceNoisePrior.from_noise_tables`): per channel the two-sided
 estimate with the narrowest relative interval (smallest ci_hi / ci_lo) if any record resolves B, else the smallest
 upper bound. B is a property of the device (its noise spectrum), so a static record of another power cycle serves;
 a device whose noise changed (ageing, a repair) needs its records filtered by the caller.
 
-Measured on the dev cache (benchmarks/README.md, "Device noise prior"): with 3 h or 8 h
-records the navigation and tactical gyro biases' z sd 0.75-0.92 -> 0.98-1.09; a 20-min record's navigation bound
-(6.5x the truth) leaves the rate fit wide (0.80 -> 0.70), and a bound at ~1x the truth is too narrow (z sd 1.6).
+Measured on the dev cache (benchmarks/README.md, "Device noise prior" and "Session 10"): with 3 h or 8 h
+records the navigation and tactical gyro biases' z sd 0.75-0.92 -> 0.95-1.04 (navigation: a bound in 596 of 600
+channels at 3 h); a 20-min record's navigation bound (6.5x the truth) leaves the rate fit wide (run's B 0.75, bound
+0.68: a navigation gyro needs a record of hours, [IEEE952] C.3), and a bound near the truth is still narrow (the
+11 % of tactical channels a bound at 3 h: rate-fit bias z sd 1.27, 0.89 coverage; 1.62 with the bound alone).
 
-The pipeline (``assets_lib/stages/calibration.py``) passes :meth:`DeviceNoisePrior.resolved_only` of the device's
-static runs' ``allan_deviation`` outputs (sibling reads) to the fits.
+The pipeline (``assets_lib/stages/calibration.py``) passes the prior of the device's static runs'
+``allan_deviation`` outputs (sibling reads, :func:`device_noise_prior`) to the fits, bounds included.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import pandas as pd
 from assets_lib.calibration.fit_core import (
     FlickerBoundLaw,
     flicker_dof_from_interval,
+    flicker_law,
     flicker_prior_tau2,
 )
 
@@ -65,13 +70,13 @@ class ChannelNoisePrior:
         """The upper bound on B (``ci_hi``); meaningful for either kind."""
         return float(self.ci_hi)
 
-    def flicker(self):
+    def flicker(self, run_law=None):
         """(tau2, dof or law) for :func:`fit_core.fit_linear`'s ``flicker_tau2`` / ``flicker_tau2_dof``: two-sided,
         tau^2 = B^2 / pi and nu from (hi / lo)^2 = chi^2_nu(1 - a/2) / chi^2_nu(a/2) (:func:`flicker_dof_from_interval`);
         a bound, tau2_max = bound^2 / pi with :class:`FlickerBoundLaw` (tau^2 <= tau2_max)."""
         if self.is_upper_bound:
             t2 = float(self.ci_hi) ** 2 / np.pi
-            return t2, FlickerBoundLaw(t2)
+            return t2, FlickerBoundLaw(t2, inner=run_law)
         return (flicker_prior_tau2(self.b),
                 flicker_dof_from_interval(self.b, self.ci_lo, self.ci_hi, level=self.ci_level))
 
@@ -79,8 +84,8 @@ class ChannelNoisePrior:
     def source(self) -> str:
         """Where B came from, for a coefficient's note."""
         if self.is_upper_bound:
-            return (f"1/f level B <= {self.ci_hi:.3g} (upper bound, integrated below it) from the device's static "
-                    f"record {self.run_id} ({self.duration_s / 3600:.3g} h)")
+            return (f"1/f level B <= {self.ci_hi:.3g} (upper bound: the run's own B integrated below it) from the "
+                    f"device's static record {self.run_id} ({self.duration_s / 3600:.3g} h)")
         return (f"1/f level B = {self.b:.3g} [{self.ci_lo:.3g}, {self.ci_hi:.3g}] from the device's static record "
                 f"{self.run_id} ({self.duration_s / 3600:.3g} h)")
 
@@ -104,23 +109,21 @@ class DeviceNoisePrior:
     def get(self, channel: str) -> ChannelNoisePrior | None:
         return next((c for c in self.channels if c.channel == channel), None)
 
-    def flicker(self, channel: str):
+    def flicker(self, channel: str, run_law=None):
         """(tau2, dof or law) of ``channel`` for the fits (:meth:`ChannelNoisePrior.flicker`); KeyError if absent."""
         c = self.get(channel)
         if c is None:
             raise KeyError(channel)
-        return c.flicker()
+        return c.flicker(run_law)
 
     def source(self, channel: str) -> str:
         c = self.get(channel)
         return "" if c is None else c.source
 
     def resolved_only(self) -> DeviceNoisePrior:
-        """The channels whose B some record resolves (two-sided); the pipeline's choice (``gyro_rate_fit``,
-        ``accel_multiposition_fit``): a bound alone is left to the run's own B, because the bound law is too wide
-        when the bound lies far above the truth (navigation, 20-min record: rate-fit bias z sd 0.80 -> 0.70) and
-        too narrow when it lies close to it (tactical channels still bounded at 3 h: coverage 0.75, z sd 1.62;
-        benchmarks/README.md "Device noise prior")."""
+        """The channels whose B some record resolves (two-sided); session 9's pipeline choice, before a bound
+        truncated the run's own law (a bound alone was too narrow near the truth: tactical channels still bounded at
+        3 h, coverage 0.75, z sd 1.62; benchmarks/README.md "Device noise prior")."""
         return DeviceNoisePrior(tuple(c for c in self.channels if not c.is_upper_bound), self.device_id)
 
     @classmethod
@@ -161,22 +164,24 @@ def device_noise_prior(noise_tables: Sequence[pd.DataFrame], static_terms: Seque
                        keys: Sequence[str] = ()) -> DeviceNoisePrior | None:
     """What the pipeline's fits get (``gyro_rate_fit``, ``accel_multiposition_fit``): the prior from the
     ``allan_deviation`` stage's ``noise`` and ``static_terms`` tables of the device's static runs (run id and record
-    duration from ``static_terms``; ``keys`` name the runs whose ``static_terms`` is empty), the channels some record
-    resolves (:meth:`DeviceNoisePrior.resolved_only`); None without a static run."""
+    duration from ``static_terms``; ``keys`` name the runs whose ``static_terms`` is empty), per channel a two-sided
+    B or, where no record resolves it, the bound (module docstring); None without a static run."""
     if not noise_tables:
         return None
     keys = list(keys) or [f"static run {i}" for i in range(len(noise_tables))]
     run_ids = [str(t["run_id"].iloc[0]) if len(t) else k for t, k in zip(static_terms, keys)]
     durations = [float(t["duration_s"].iloc[0]) if len(t) else float("nan") for t in static_terms]
-    return DeviceNoisePrior.from_noise_tables(list(noise_tables), run_ids, durations).resolved_only()
+    return DeviceNoisePrior.from_noise_tables(list(noise_tables), run_ids, durations)
 
 
-def prior_flicker(noise_prior: DeviceNoisePrior | None, channel: str):
+def prior_flicker(noise_prior: DeviceNoisePrior | None, channel: str, plateaus=None):
     """(flicker_tau2, flicker_tau2_dof, source) of ``channel`` from the device's prior for a fit, or None without a
-    prior or without the channel (the fit then reads the run's own B, as before)."""
+    prior or without the channel (the fit then reads the run's own B, as before). ``plateaus``: the run's plateau
+    table; a bound then truncates the run's own Allan law (:func:`flicker_law`) instead of replacing it."""
     if noise_prior is None or channel not in noise_prior:
         return None
-    t2, dof = noise_prior.flicker(channel)
+    run_law = flicker_law(plateaus, channel) if plateaus is not None else None
+    t2, dof = noise_prior.flicker(channel, run_law)
     return t2, dof, noise_prior.source(channel)
 
 

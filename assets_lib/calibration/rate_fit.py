@@ -237,14 +237,16 @@ def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.n
 
 
 def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, str], scales, optional, rel_tol,
-                    nuisance=None, times=None, flicker_tau2=None):
+                    nuisance=None, times=None, flicker_tau2=None, flicker_tau2_dof=None):
     """Asymmetry by a hinge term: y = ... + Kbar w + (dK/2)|w| (shared bias); K+- = Kbar +- dK/2.
 
     One fit with a common bias rather than two separate line fits: the bias is anchored by both signs and the
     zero-rate plateaus ([IEEE952]: asymmetry = difference of the positive- and negative-input scale factors
     relative to their mean). Note: an even nonlinearity (w^2) aliases into |w|. With plateau ``times`` the fit
     has the main fit's correlated-noise model (``flicker_tau2``): without it K+, K- and the asymmetry lost the 1/f
-    noise shared between plateaus (consumer asymmetry coverage 0.88, z sd 1.48 in the full-chain Monte Carlo).
+    noise shared between plateaus (consumer asymmetry coverage 0.88, z sd 1.48 in the full-chain Monte Carlo);
+    ``flicker_tau2_dof``: that level's degrees of freedom or sampling law, integrated over as the main fit does
+    (taken as exact, a B read at 2-20x the truth with < 1 dof widened the navigation means-fit asymmetry: z sd 0.91).
     """
     Ah = np.column_stack([A[:, : main_col + 1], np.abs(x_main), A[:, main_col + 1 :]])
     nh = tuple(names[: main_col + 1]) + ("sf_asymmetry_term",) + tuple(names[main_col + 1 :])
@@ -252,7 +254,7 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     op = np.r_[optional[: main_col + 1], False, optional[main_col + 1 :]]
     nu = None if nuisance is None else np.r_[nuisance[: main_col + 1], False, nuisance[main_col + 1 :]]
     f = fit_linear(Ah, y, nh, sigma=sigma, scales=sc, optional=op, rel_tol=rel_tol, pre_excluded=pre, outlier_test=False,
-                   nuisance=nu, times=times, flicker_tau2=flicker_tau2)
+                   nuisance=nu, times=times, flicker_tau2=flicker_tau2, flicker_tau2_dof=flicker_tau2_dof)
     return hinge_coefficients(f, main_col, main_col + 1)
 
 
@@ -494,7 +496,7 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
     rate_rows = sweep & (p["kind"].to_numpy() == "rate") & (np.linalg.norm(om, axis=1) > 3.0 * EARTH_RATE_RADPS)
     ch = f"gyro_{a}_radps"
     # the device's static-record B when given (noise_prior), else the run's own (segmentation's pooled Allan fit)
-    dp = prior_flicker(noise_prior, ch)
+    dp = prior_flicker(noise_prior, ch, p)
     f_tau2, f_dof, b_source = dp or (flicker_prior_tau2(flicker_b(p, ch)), flicker_b_dof(p, ch), "")
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=optional, rel_tol=rel_tol, pre_excluded=pre_i,
                      outlier_test=outlier_test, alpha=alpha, outlier_note=note,

@@ -86,12 +86,13 @@ def _prior_meta(prior: DeviceNoisePrior | None) -> dict:
     return {"noise_prior": {} if prior is None else {c.channel: c.source for c in prior.channels}}
 
 
-@stage("gyro_rate_fit", level="capture", group="calibration", code_version="2", upstream=["plateaus"],
+@stage("gyro_rate_fit", level="capture", group="calibration", code_version="3", upstream=["plateaus"],
        siblings=["allan_deviation"], applies_to=("rate",))
 def gyro_rate_fit(key: str, inputs) -> StageOutput:
     """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus ([SEED003] eq. 3,
     [SEED000] eq. 6-13); saturated or wild plateaus excluded automatically and reported; the 1/f level B of the
-    correlated-noise model from the device's static records where they resolve it (:func:`static_noise_prior`)."""
+    correlated-noise model from the device's static records (:func:`static_noise_prior`: their B where they resolve
+    it, else their bound truncating the run's own B)."""
     prior = static_noise_prior(inputs)
     fit = fit_gyro_rate(inputs.table("plateaus", "plateaus"), noise_prior=prior)
     coef = fit.coefficient_table()
@@ -103,7 +104,7 @@ def gyro_rate_fit(key: str, inputs) -> StageOutput:
     )
 
 
-@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="2", upstream=["plateaus"],
+@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="3", upstream=["plateaus"],
        siblings=["allan_deviation"], applies_to=("multiposition", "tumble"))
 def accel_multiposition_fit(key: str, inputs) -> StageOutput:
     """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule ([SEED000] eq.

@@ -5,12 +5,14 @@
   imulab fit tumble --means tumble.csv --angle-unit deg --output-unit V --json tumble.json
   imulab fit rate --means rate.csv --sem-column sem_V --start-column t0_s --end-column t1_s \\
       --flicker-b 3e-4 --flicker-b-ci 2e-4 5e-4
+  imulab fit rate ... --flicker-b-ci 0 4e-8       # a record that only bounds B (imulab allan: 'upper bound')
 
 With each plateau's start and end time (and the sems) the fit models the 1/f (bias-instability) noise the plateaus
 share (correlated-noise GLS, fit_core.flicker_gls): its level from the plateaus by REML, or the run's B from an Allan
-analysis of the output (``imulab allan``) with its interval, integrated over. This is the fit the coverage benchmark
-scores as ``imulab fit rate`` / ``fit tumble``; without times the plateaus are independent and a warning says the
-intervals leave out the shared noise.
+analysis of the output (``imulab allan``) with its interval, integrated over, or only its upper bound (an interval
+printed as [0, bound]: a record too short to resolve the 1/f floor), integrated over below it. This is the fit the
+coverage benchmark scores as ``imulab fit rate`` / ``fit tumble``; without times the plateaus are independent and a
+warning says the intervals leave out the shared noise.
 """
 
 from __future__ import annotations
@@ -79,7 +81,14 @@ def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker
     if flicker_b_dof is not None and flicker_b_ci is not None:
         raise click.ClickException("give B's degrees of freedom (--flicker-b-dof) or its interval (--flicker-b-ci), "
                                    "not both")
-    if (flicker_b_dof is not None or flicker_b_ci is not None) and flicker_b is None:
+    bound = flicker_b_ci is not None and flicker_b_ci[0] <= 0
+    if bound and (flicker_b is not None or flicker_b_dof is not None):
+        raise click.ClickException(f"--flicker-b-ci {flicker_b_ci[0]:g} {flicker_b_ci[1]:g} is an upper bound "
+                                   "(lower end <= 0: the record did not resolve B): give it alone, without "
+                                   "--flicker-b / --flicker-b-dof")
+    if bound and not (np.isfinite(flicker_b_ci[1]) and flicker_b_ci[1] > 0):
+        raise click.ClickException(f"--flicker-b-ci: the upper bound must be a positive number, not {flicker_b_ci[1]}")
+    if (flicker_b_dof is not None or (flicker_b_ci is not None and not bound)) and flicker_b is None:
         raise click.ClickException("--flicker-b-dof / --flicker-b-ci need --flicker-b")
     notes = []
     times = None
@@ -100,21 +109,23 @@ def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker
         notes.append("no plateau times (--start-column/--end-column): the plateaus are taken as independent, so "
                      "the 1/f (bias-instability) noise they share is not in the intervals, which are then too narrow "
                      "for a sensor whose bias wanders between plateaus")
-    if flicker_b is not None and times is None:
-        raise click.ClickException("--flicker-b needs the plateau times (--start-column/--end-column)")
+    if (flicker_b is not None or bound) and times is None:
+        raise click.ClickException("--flicker-b / --flicker-b-ci need the plateau times (--start-column/--end-column)")
     if flicker_b is not None and not (np.isfinite(flicker_b) and flicker_b >= 0):
         raise click.ClickException(f"--flicker-b must be >= 0 (0: looked for and not detected), not {flicker_b}")
+    if bound:
+        return times, None, None, float(flicker_b_ci[1]), notes
     if flicker_b_ci is not None:
         lo, hi = flicker_b_ci
         try:
             flicker_b_dof = flicker_dof_from_interval(flicker_b, lo, hi)
         except ValueError as e:
             raise click.ClickException(f"--flicker-b-ci: {e}") from None
-    return times, flicker_b, flicker_b_dof, notes
+    return times, flicker_b, flicker_b_dof, None, notes
 
 
-def _noise_json(times, b, b_dof, notes) -> dict:
-    return {"correlated_noise": times is not None, "flicker_b": b, "flicker_b_dof": b_dof,
+def _noise_json(times, b, b_dof, b_max, notes) -> dict:
+    return {"correlated_noise": times is not None, "flicker_b": b, "flicker_b_dof": b_dof, "flicker_b_max": b_max,
             "input_warnings": list(notes)}
 
 
@@ -207,7 +218,8 @@ _common = [
                  help="Degrees of freedom of B^2 (default: B taken as exact); or give --flicker-b-ci."),
     click.option("--flicker-b-ci", type=float, nargs=2, default=None,
                  help="B's 95 %% interval LOW HIGH as imulab allan prints it: its degrees of freedom are read "
-                      "from it (B^2 as a scaled chi-square)."),
+                      "from it (B^2 as a scaled chi-square). An upper bound (LOW 0, given without --flicker-b): "
+                      "the 1/f level is integrated over below HIGH."),
     click.option("--exclusion", type=click.Choice(EXCLUSION_MODES), default="auto", show_default=True,
                  help="auto: saturation (flat tops and plateaus at the rail) + Bonferroni outlier test; "
                       "saturation: no outlier test; flat-top: only plateaus whose output stopped following the "
@@ -237,14 +249,14 @@ def rate_cmd(means, output_unit, output_column, sem_column, start_column, end_co
              flicker_b_ci, exclusion, alpha, json_path, plot_path, rate_unit, rate_column):
     """Seed 001 eq. 1-3: U = U0 + K w with nonlinearity, asymmetry and automatic exclusions."""
     x, y, s, ic, oc, df = _read(means, rate_column, output_column, sem_column, "commanded rate")
-    times, b, b_dof, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
-                                           flicker_b_ci)
+    times, b, b_dof, b_max, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
+                                                  flicker_b_ci)
     res = fit_rate_means(x, y, s, rate_unit=rate_unit, output_unit=output_unit, exclusion=exclusion, alpha=alpha,
-                         times=times, flicker_b=b, flicker_b_dof=b_dof)
+                         times=times, flicker_b=b, flicker_b_dof=b_dof, flicker_b_max=b_max)
     _print(res, f"rate fit of {means} (rate column {ic!r} in {rate_unit}, output column {oc!r} in {output_unit})",
            notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
-                                 "alpha": alpha, "model": "U = U0 + K w", **_noise_json(times, b, b_dof, notes)})
+                                 "alpha": alpha, "model": "U = U0 + K w", **_noise_json(times, b, b_dof, b_max, notes)})
     _plot(res, plot_path, f"commanded rate [{rate_unit}]")
 
 
@@ -258,16 +270,17 @@ def tumble_cmd(means, output_unit, output_column, sem_column, start_column, end_
                flicker_b_ci, exclusion, alpha, json_path, plot_path, angle_unit, angle_column, misalignment_term):
     """Seed 001 eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos (a_i = sin(theta) g)."""
     x, y, s, ic, oc, df = _read(means, angle_column, output_column, sem_column, "table angle")
-    times, b, b_dof, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
-                                           flicker_b_ci)
+    times, b, b_dof, b_max, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
+                                                  flicker_b_ci)
     res = fit_tumble_means(x, y, s, angle_unit=angle_unit, output_unit=output_unit, misalignment_term=misalignment_term,
-                           exclusion=exclusion, alpha=alpha, times=times, flicker_b=b, flicker_b_dof=b_dof)
+                           exclusion=exclusion, alpha=alpha, times=times, flicker_b=b, flicker_b_dof=b_dof,
+                           flicker_b_max=b_max)
     _print(res, f"tumble fit of {means} (angle column {ic!r} in {angle_unit}, output column {oc!r} in {output_unit})",
            notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
                                  "alpha": alpha, "model": "U = K0 + K1 sin + K2 sin^2 + K3 sin cos"
                                  + (" + d cos" if misalignment_term else ""),
-                                 **_noise_json(times, b, b_dof, notes)})
+                                 **_noise_json(times, b, b_dof, b_max, notes)})
     _plot(res, plot_path, f"table angle [{angle_unit}]")
 
 
