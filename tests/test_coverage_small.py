@@ -128,3 +128,24 @@ def test_noise_hook_rows_join_the_trial(monkeypatch):
     assert mc.noise_rows({"trial": 1, "grade": "tactical"}, 916, 1)[0]["z"] == 0.5
     tabs = mc.summarize(r)
     assert "gyro:noise:N" in set(tabs["family"]["family"])
+
+
+@pytest.mark.slow
+def test_a_static_record_reaches_the_stage_fits_and_the_means_rows():
+    """--static-s: the trial's navigation device gets a 20-min static record; its gyro B is only an upper bound there,
+    which the `imulab fit` rows pass as a lab would (`--flicker-b-ci 0 BOUND` = flicker_b_max) and the stage fits take
+    as a bound truncating the run's own B; its accelerometer B is two-sided."""
+    from assets_lib.sim.simulator import example_device
+
+    prior = mc.static_prior(example_device("MC917-00000", "navigation", seed=917), 917, 0, 1200.0)
+    g, a = prior.get("gyro_x_radps"), prior.get("accel_x_mps2")
+    assert g.is_upper_bound and not a.is_upper_bound
+    assert set(mc.flicker_options(None, "gyro_x_radps", prior)) == {"flicker_b_max"}
+    assert set(mc.flicker_options(None, "accel_x_mps2", prior)) == {"flicker_b", "flicker_b_dof"}
+    r = pd.DataFrame(mc.trial((917, 0, True, 0, {"navigation": 1200.0})))
+    r = r[r["grade"] != "ungraded"]  # the table-free session's device is not graded
+    assert len(r) and (r["grade"] == "navigation").all()
+    fams = set(mc.family(r))
+    assert {"gyro:rate:bias", "gyro:static:bias", "gyro:means:asymmetry"} <= fams
+    z = r["z"].dropna()
+    assert len(z) > 50 and np.max(np.abs(z)) < 8
