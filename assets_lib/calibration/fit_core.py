@@ -918,9 +918,10 @@ class FlickerBoundLaw:
     ``inner``: the run's own Allan law (:class:`FlickerLaw` of its plateaus), weighed inside the support, so the
     bound truncates what the run says (its censored likelihood) rather than replacing it: posterior
     ~ L_REML L_run 1[tau <= tau_max], flat in tau. Where the bound is near the truth the run's law lifts tau^2
-    toward it (the 66 of 600 tactical channels a bound at 3 h: rate-fit bias z sd 1.62 -> 1.27, static 1.15 ->
-    0.99); elsewhere it changes little (navigation at 3 h: rate-fit bias 0.946, static 0.982; benchmarks/README.md
-    "Session 10"). The bound lies below the run's own detection scale in 94-100 % of channels even at 20 min.
+    toward it (the 66 of 600 tactical channels a bound at 3 h: rate-fit bias z sd 1.27, coverage 0.89; session 9's
+    bound alone on other trials 1.62 / 0.75); far above the truth it changes little against the bound alone
+    (navigation at 3 h, 100 devices: rate-fit bias z sd 0.956 both; benchmarks/README.md "Session 10"). The bound lies
+    below the run's own detection scale in 94-100 % of channels even at 20 min.
 
     Interface of :class:`FlickerLaw` for :func:`fit_linear` / :func:`flicker_gls` / :func:`_flicker_marginal`:
     ``loglik`` (the inner law's inside the support, or 0 without one; -inf above), ``resolution_tau2`` (the bound:
