@@ -17,9 +17,10 @@ stderr. Also scored, from the same result objects:
   table): scale factor and misalignment, normal 95 % intervals;
 - ``imulab fit rate`` (``fit_rate_means``, seed 001's plateau-means fit) on each axis' sweep tabulated as a lab
   would (one mounting: the sweep's rate plateaus and the zero-rate plateaus in the same orientation; table rate,
-  plateau mean and sem, plateau start/end times and the run's 1/f level B for the correlated-noise model, the
-  command's ``--sem-column --start-column --end-column --flicker-b --flicker-b-dof``): scale factor, K+, K-,
-  asymmetry;
+  plateau mean and sem, plateau start/end times and the 1/f level B for the correlated-noise model, the
+  command's ``--sem-column --start-column --end-column --flicker-b --flicker-b-dof`` or ``--flicker-b-ci 0 BOUND``;
+  B from the device's static record when the trial has one, as the stages take it, else the run's own,
+  :func:`flicker_options`): scale factor, K+, K-, asymmetry;
 - the nonlinearity statistic (max |residual| / full scale, rate fit and means fit) at zero: on linear sensors
   (trials with neither asymmetry nor nonlinearity injected) the fraction of fits whose statistic stays below the
   printed 95 % noise floor is the floor's coverage (target 95 %), families ``*nonlinearity_below_floor``;
@@ -31,8 +32,8 @@ stderr. Also scored, from the same result objects:
   scored: they absorb the injected curve, so their truth is not the device's coefficient;
 - ``imulab fit tumble --misalignment-term`` (``fit_tumble_means``, seed 001's K0-K3 model) on the accelerometer
   axes a position plan tumbles through a full turn (the seed 001 12-position plan): K0-K3, delta_o and the
-  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth), with the run's 1/f level B and
-  its degrees of freedom (``flicker_b_dof``) as a lab with the run's Allan analysis would give them;
+  derived bias, K2/K1, K3/K1, misalignment (see :func:`tumble_rows` for the truth), with the 1/f level B as above
+  (:func:`flicker_options`: the device's static record, else the run's B and its degrees of freedom);
 - the table-free fits (``fit 'tablefree'``; benchmarks/mc_tablefree_coverage.py's trial on a trial-specific seed:
   a hand-placed session, static-pose detection, the Tedaldi accelerometer fit and the gyro integration fit):
   accelerometer bias, scale factor, misalignment; gyro scale factor, misalignment. That device is not graded
@@ -402,7 +403,7 @@ TUMBLE_COEFFICIENTS = ("K0", "K1", "K2", "K3", "delta_o_term", "bias", "K2_per_K
 def tumble_rows(base: dict, p: pd.DataFrame, dev, prior=None) -> list[dict]:
     """``imulab fit tumble --misalignment-term`` (fit_tumble_means, [SEED001] eq. 5-7) on every accelerometer axis
     that a position plan tumbles through a full turn in one plane (the seed 001 plan: x and z about y): angle
-    theta with f_i = g sin theta, plateau mean, sem, times and the run's 1/f level. Truth: the same model fitted to
+    theta with f_i = g sin theta, plateau mean, sem, times and the 1/f level. Truth: the same model fitted to
     the noise-free error model (docs/design.md: M f + b + K2 f^2 + f_i Kc_i.f) at the plateaus' reference forces;
     exact, because on one plane every quadratic in (sin, cos) lies in the span of 1, sin, cos, sin^2, sin cos.
     The 1/f level: :func:`flicker_options` (the device's static record, else the run's own)."""
