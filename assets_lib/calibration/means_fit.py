@@ -171,7 +171,7 @@ def _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max):
         raise ValueError("give the 1/f level B (with its dof) or only a bound on it (flicker_b_max), not both")
     if not (np.isfinite(flicker_b_max) and flicker_b_max > 0):
         raise ValueError(f"flicker_b_max must be a positive bound on B, not {flicker_b_max}")
-    t2 = float(flicker_b_max) ** 2 / np.pi
+    t2 = flicker_prior_tau2(float(flicker_b_max))
     return t2, FlickerBoundLaw(t2)
 
 

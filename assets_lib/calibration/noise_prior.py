@@ -120,12 +120,6 @@ class DeviceNoisePrior:
         c = self.get(channel)
         return "" if c is None else c.source
 
-    def resolved_only(self) -> DeviceNoisePrior:
-        """The channels whose B some record resolves (two-sided); session 9's pipeline choice, before a bound
-        truncated the run's own law (a bound alone was too narrow near the truth: tactical channels still bounded at
-        3 h, coverage 0.75, z sd 1.62; benchmarks/README.md "Device noise prior")."""
-        return DeviceNoisePrior(tuple(c for c in self.channels if not c.is_upper_bound), self.device_id)
-
     @classmethod
     def from_noise_tables(cls, noise_tables: Sequence[pd.DataFrame], run_ids: Sequence[str],
                           durations_s: Sequence[float], device_id: str = "") -> DeviceNoisePrior:
