@@ -87,7 +87,13 @@ def test_small_benchmark_scores_every_family(tmp_path):
     assert "--seed 915 --trials 3" in text
     # the seeds and the other schedules: a 6-position run and the seed 003 rate sequence (dwell scaled)
     r = pd.DataFrame(mc.trial((915, 3, False, 0)))
-    assert set(r["rate_plan"]) == {"seed003_rate_sequence"} and set(r["pos_plan"]) == {"six_position"}
+    assert set(r["rate_plan"]) == {"seed003_rate_sequence"} and set(r["pos_plan"]) == {"six_position", mc.TUMBLE_PLAN}
+    # every trial scores the tumble fit, here on a tumble run of its own (its rows and its gate under that plan)
+    tu = r[r["fit"] == "tumble"]
+    assert len(tu) and set(tu["pos_plan"]) == {mc.TUMBLE_PLAN} and set(tu["axis"]) == {"x", "z"}
+    assert set(r.loc[r["coefficient"] == "tumble_run_passed", "pos_plan"]) == {mc.TUMBLE_PLAN}
+    rest = r[(r["fit"] != "tumble") & (r["coefficient"] != "tumble_run_passed")]
+    assert set(rest["pos_plan"]) == {"six_position"}
     assert {"accel:accel:bias", "accel:accel:scale_factor", "gyro:rate:sf_asymmetry"} <= set(mc.family(r))
     # injected scale-factor nonlinearity (trial 12: plan-cycle 2): scored away from zero against the noise-free
     # statistic; the rate run's other rows (their truth absorbs the curve) are not scored in that trial
