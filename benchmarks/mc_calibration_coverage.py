@@ -208,12 +208,9 @@ def trial(args: tuple) -> list[dict]:
         fit_gyro_static,
     )
     from assets_lib.calibration.rate_fit import fit_gyro_rate
-    from assets_lib.calibration.segmentation import segment_run
     from assets_lib.sim.effects import sensor_chain
     from assets_lib.sim.effects.response import ScaleFactorAsymmetry
-    from assets_lib.sim.simulator import DEFAULT_EFFECTS, example_device, simulate_run
-    from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
-    from raw_schemas.readers import ingest_frames
+    from assets_lib.sim.simulator import DEFAULT_EFFECTS, example_device
 
     seed, k, quick = args[:3]
     noise_every = args[3] if len(args) > 3 else 1
@@ -236,15 +233,8 @@ def trial(args: tuple) -> list[dict]:
         rate_fx = sensor_chain([ScaleFactorAsymmetry(gyro=tuple(eps))])
     elif nonlin is not None:
         rate_fx = sensor_chain([nonlin])
-    plates = {}
-    for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS))):
-        fx = rate_fx if m == 0 else DEFAULT_EFFECTS
-        sim = simulate_run(dev, _plan(name, scales[name]), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m,
-                           effects=fx)
-        ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
-        plates[m] = segment_run(ing.manifest, ing.imu, ing.table).plateaus
-    # the blocking gate of the plateaus stage: a run with too few usable plateaus gets no fit and no record
-    passed = [float((~plates[m]["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION for m in (0, 1)]
+    plates, passed = zip(*(run_plateaus(dev, name, scales[name], seed, k, m, rate_fx if m == 0 else DEFAULT_EFFECTS)
+                           for m, (name, scales) in enumerate(((rate_plan, RATE_PLANS), (pos_plan, POS_PLANS)))))
     prior = static_prior(dev, seed, k, _static_seconds(static_s, grade))  # the stages' sibling read of it
     rf = fit_gyro_rate(plates[0], noise_prior=prior) if passed[0] else None  # stage gyro_rate_fit
     af = fit_accel_multiposition(plates[1], noise_prior=prior) if passed[1] else None  # stage accel_multiposition_fit
@@ -269,6 +259,21 @@ def trial(args: tuple) -> list[dict]:
     return rows
 
 
+def run_plateaus(dev, plan: str, scale: float, seed: int, k: int, m: int, effects):
+    """Run m of trial k (0 rate, 1 position, 2 the tumble run): simulated, ingested and segmented as the stages do;
+    (plateaus, passed) with ``passed`` the plateaus stage's blocking gate (a run with too few usable plateaus gets
+    no fit and no record)."""
+    from assets_lib.calibration.segmentation import segment_run
+    from assets_lib.sim.simulator import simulate_run
+    from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
+    from raw_schemas.readers import ingest_frames
+
+    sim = simulate_run(dev, _plan(plan, scale), f"mc{seed}-{k}-{m}", seed=seed * 1_000_000 + 10 * k + m, effects=effects)
+    ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
+    p = segment_run(ing.manifest, ing.imu, ing.table).plateaus
+    return p, float((~p["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION
+
+
 #: the position plan whose accelerometer axes tumble through a full turn (``imulab fit tumble``)
 TUMBLE_PLAN = "seed001_12_position_tumble"
 
@@ -278,19 +283,12 @@ def tumble_trial_rows(base: dict, pos_plateaus, dev, prior, seed: int, k: int) -
     tumble plan of its own (same device and static record, its own noise seed, the plateaus stage's gate), so that
     every trial scores the tumble fit (one plan in five gave 266 estimates per family and grade: a coverage
     standard error of 0.013 against the 0.93-0.97 band)."""
-    from assets_lib.calibration.segmentation import segment_run
-    from assets_lib.sim.simulator import DEFAULT_EFFECTS, simulate_run
-    from assets_lib.stages.calibration import MIN_PLATEAU_FRACTION
-    from raw_schemas.readers import ingest_frames
+    from assets_lib.sim.simulator import DEFAULT_EFFECTS
 
     if base["pos_plan"] == TUMBLE_PLAN:
         return [] if pos_plateaus is None else tumble_rows(base, pos_plateaus, dev, prior)
     base = dict(base, pos_plan=TUMBLE_PLAN)
-    sim = simulate_run(dev, _plan(TUMBLE_PLAN, POS_PLANS[TUMBLE_PLAN]), f"mc{seed}-{k}-2",
-                       seed=seed * 1_000_000 + 10 * k + 2, effects=DEFAULT_EFFECTS)
-    ing = ingest_frames(sim.manifest, sim.imu_raw, sim.table_raw)
-    p = segment_run(ing.manifest, ing.imu, ing.table).plateaus
-    ok = float((~p["flagged"].astype(bool)).mean()) >= MIN_PLATEAU_FRACTION
+    p, ok = run_plateaus(dev, TUMBLE_PLAN, POS_PLANS[TUMBLE_PLAN], seed, k, 2, DEFAULT_EFFECTS)
     gate = [dict(base, sensor="gate", axis="", coefficient="tumble_run_passed", fit="gate", value=np.nan,
                  stderr=np.nan, truth=np.nan, z=np.nan, covered=ok)]
     return gate + (tumble_rows(base, p, dev, prior) if ok else [])
