@@ -123,6 +123,14 @@ def _plan(name: str, scale: float):
     return build_plan(name, duration_scale=scale)
 
 
+def device_truth(rf, dev, eps=None) -> dict:
+    """:func:`_truth` from a simulated device's DeviceTruth (and the injected asymmetry ``eps``)."""
+    g, a = dev.gyro, dev.accel
+    return _truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
+                  np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
+                  np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc), eps)
+
+
 def _truth(rf, Kg, Eg, bg, G, Ka, Ea, ba, K2, Kc, eps=None):
     """Truth for every coefficient row of the three coefficient tables, keyed (sensor, axis, coefficient, fit)."""
     truth = {}
@@ -239,10 +247,7 @@ def trial(args: tuple) -> list[dict]:
     rf = fit_gyro_rate(plates[0], noise_prior=prior) if passed[0] else None  # stage gyro_rate_fit
     af = fit_accel_multiposition(plates[1], noise_prior=prior) if passed[1] else None  # stage accel_multiposition_fit
     gs = fit_gyro_static(plates[1], noise_prior=prior) if passed[1] else None  # same stage: no rate_fit
-    g, a = dev.gyro, dev.accel
-    truth = _truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
-                   np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
-                   np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc), eps)
+    truth = device_truth(rf, dev, eps)
     base = {"seed": seed, "trial": k, "grade": grade, "rate_plan": rate_plan, "pos_plan": pos_plan,
             "asymmetry_injected": eps is not None, "nonlinearity_injected": nonlin is not None}
     gate = [dict(base, sensor="gate", axis="", coefficient=f"{kind}_run_passed", fit="gate", value=np.nan,

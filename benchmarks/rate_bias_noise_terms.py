@@ -56,13 +56,10 @@ def one(args) -> list[dict]:
     b = dev.gyro.noise[0].b
     exact = DeviceNoisePrior(tuple(ChannelNoisePrior(f"gyro_{a}_radps", b, 0.999 * b, 1.001 * b, False, "truth", 1e5)
                                    for a in mc.AX))
-    g, a = dev.gyro, dev.accel
     out = []
     for name, prior in (("run_B", None), ("true_B", exact)):
         rf = fit_gyro_rate(p, noise_prior=prior)
-        truth = mc._truth(rf, np.asarray(g.scale), np.asarray(g.misalignment_rad), np.asarray(g.bias),
-                          np.asarray(dev.g_sensitivity), np.asarray(a.scale), np.asarray(a.misalignment_rad),
-                          np.asarray(a.bias), np.asarray(a.k2), np.asarray(a.kc))
+        truth = mc.device_truth(rf, dev)
         for r in mc.score({"trial": k, "grade": grade}, rf, None, None, truth):
             if r["fit"] == "rate" and r["coefficient"] in ("bias", "scale_factor"):
                 out.append(dict(trial=k, variant=variant, prior=name, coefficient=r["coefficient"], axis=r["axis"],
