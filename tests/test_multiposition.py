@@ -262,6 +262,29 @@ def test_run_mean_wander_is_not_scaled_by_the_residual_scatter():
     assert 0.93 < np.std(z) < 1.07 and 0.93 < np.mean(np.abs(z) < 1.96) < 0.97
 
 
+def test_white_part_is_the_sems_less_their_own_floor():
+    """Sems that hold only white noise (segmentation's SEM model left the 1/f term out, as for tactical
+    accelerometers whose floor ~ white at T = 15 s) plus a 1/f level known from elsewhere (the device's static
+    record): the GLS keeps the whole sem as white (``sem_flicker_tau2=0``) and its intervals hold; subtracting the
+    record's floor from the sems (the rule before, ``sem_flicker_tau2=None``) makes the scale factor's too narrow."""
+    from assets_lib.calibration.fit_core import FLICKER_WHITE, fit_linear, flicker_covariance
+
+    X, t_mid, t_len, sem = _flicker_design()
+    tau2 = sem[0] ** 2 / FLICKER_WHITE  # floor = white part of a plateau
+    L = np.linalg.cholesky(flicker_covariance(sem, t_mid, t_len, tau2, sem_tau2=0.0))  # white sem^2 + 1/f
+    beta = np.array([0.05, 1.001, 1e-4])
+    rng = np.random.default_rng(11)
+    z = {0.0: [], None: []}
+    for _ in range(800):
+        y = X @ beta + L @ rng.standard_normal(8)
+        for st in z:
+            fit = fit_linear(X, y, ("bias", "scale_factor", "k2"), sigma=sem, outlier_test=False, times=(t_mid, t_len),
+                             flicker_tau2=tau2, flicker_tau2_dof=1e4, sem_flicker_tau2=st)
+            z[st].append((fit.value[1] - beta[1]) / np.sqrt(fit.cov[1, 1]))  # 'marginal' in >= 98 % of fits
+    assert 0.92 < np.std(z[0.0]) < 1.08 and 0.93 < np.mean(np.abs(z[0.0]) < 1.96) < 0.97
+    assert np.std(z[None]) > 1.15
+
+
 def test_undetected_flicker_level_is_bounded_by_the_plateau_sems():
     """B = 0 from the run's Allan fit means "not seen within the plateaus", not "absent": with too few residual
     dof for REML (here 2: a 6-position-like design) tau^2 is taken at its bound sem^2 / (2 ln2), so the bias keeps

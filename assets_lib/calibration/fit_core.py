@@ -29,7 +29,8 @@ Exclusions
     nonlinearity (systematic residuals everywhere) does not turn the end plateaus into "outliers".
 
 Correlated noise between plateaus (``times``)
-    When the plateau times are known, the final fit is a GLS with Sigma = diag(sem^2 - 2 ln2 tau^2) + tau^2 G,
+    When the plateau times are known, the final fit is a GLS with Sigma = diag(sem^2 - 2 ln2 tau_s^2) + tau^2 G
+    (tau_s^2 the 1/f level the sems contain, :func:`white_variance`),
     G the covariance shape of window means of 1/f (bias-instability) noise relative to the run mean plus the
     Allan floor at the run length, and tau^2 = B^2 / pi estimated by REML (:func:`flicker_gls`). Bias
     instability makes low-frequency contrasts (positions minutes apart) noisier than independent sems promise
@@ -157,6 +158,7 @@ class LinearFit:
     warnings: tuple[str, ...] = field(default=())
     sem_prior_dof: float = 0.0
     flicker_tau2: float = 0.0  # REML variance of the 1/f (bias instability) component between plateaus
+    sem_flicker_tau2: float | None = None  # the 1/f level the sems already contain (fit_linear's argument)
 
     @property
     def stderr(self) -> np.ndarray:
@@ -318,6 +320,7 @@ def fit_linear(
     times: tuple[np.ndarray, np.ndarray] | None = None,
     flicker_tau2: float | None = None,
     flicker_tau2_dof: float | FlickerLaw | FlickerBoundLaw | None = None,
+    sem_flicker_tau2: float | None = None,
 ) -> LinearFit:
     """[SEED003] eq. 3, x = (A^T W A)^-1 A^T W b, with identifiability, Bonferroni outlier test and chi^2 check.
 
@@ -332,6 +335,10 @@ def fit_linear(
     dof: the Allan estimate's full sampling law (used when B was not detected, module docstring); a
     :class:`FlickerBoundLaw` with ``flicker_tau2`` its ``tau2_max``: only an upper bound on B is known (the device's
     static record, :mod:`assets_lib.calibration.noise_prior`), tau^2 integrated over [0, tau2_max].
+    ``sem_flicker_tau2``: the 1/f level tau^2 whose Allan floor 2 ln2 tau^2 the ``sigma`` already contain
+    (segmentation's SEM model, :func:`sem_flicker_tau2`; 0 when that model left the floor out): the plateaus'
+    white part is then sigma^2 - 2 ln2 sem_flicker_tau2 whatever tau^2 the GLS weighs (:func:`flicker_covariance`);
+    None: the sems are taken to contain the floor of the tau^2 weighed.
     ``nuisance`` (p,) bool: columns that absorb what they can (kept while linearly independent, never forcing
     other columns out); a caller reports them only when the whole nuisance group is observable.
     ``screen_columns`` (n, m): extra smooth nuisance regressors used only by the outlier test (e.g. |w|, w^2,
@@ -466,7 +473,7 @@ def fit_linear(
         X = A[np.ix_(idx, np.flatnonzero(obs))]
         if np.all(np.isfinite(t_mid[idx])) and np.all(np.isfinite(t_len[idx])) and np.any(np.all(X == X[0], axis=0)):
             tau2, gx, gC, gchi2 = flicker_gls(X, y[idx], sig[idx], t_mid[idx], t_len[idx], tau2=flicker_tau2,
-                                               prior_dof=flicker_tau2_dof)
+                                               prior_dof=flicker_tau2_dof, sem_tau2=sem_flicker_tau2)
             if tau2 > 0:
                 x, C0, chi2 = gx, gC, gchi2
                 marginal = _integrates_tau2(flicker_tau2, flicker_tau2_dof)
@@ -557,6 +564,7 @@ def fit_linear(
         warnings=tuple(warnings),
         sem_prior_dof=float(sem_prior_dof if policy == "pooled" else 0.0),
         flicker_tau2=float(tau2),
+        sem_flicker_tau2=sem_flicker_tau2,
     )
 
 
@@ -590,6 +598,16 @@ def flicker_b(p, channel: str) -> float | None:
     return float(p[c].iloc[0]) if c in p and len(p) else None
 
 
+def sem_flicker_tau2(p, channel: str) -> float | None:
+    """tau^2 = B_s^2 / pi of the 1/f level the plateau sems contain (``<channel>_sem_flicker_b``: segmentation's SEM
+    model, 0 where its selection left the floor out; :func:`white_variance`), or None for a table without it."""
+    c = f"{channel}_sem_flicker_b"
+    if c not in p or not len(p):
+        return None
+    b = float(p[c].iloc[0])
+    return b**2 / np.pi if np.isfinite(b) and b >= 0 else None
+
+
 def flicker_prior_tau2(b: float | None) -> float | None:
     """tau^2 = B^2 / pi of the correlated-noise GLS from a 1/f level B found by an Allan analysis (segmentation's
     pooled fit of the run), or None (tau^2 by REML from the plateaus) when B is unknown or was not detected.
@@ -607,19 +625,33 @@ def flicker_prior_tau2(b: float | None) -> float | None:
     return float(b) ** 2 / np.pi
 
 
-def flicker_covariance(sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray, tau2: float) -> np.ndarray:
-    """Sigma = diag(sem^2 - 2 ln2 tau^2) + tau^2 G of :func:`flicker_gls` (G double-centred plus the Allan floor)."""
+def white_variance(sig: np.ndarray, tau2: float, sem_tau2: float | None = None) -> np.ndarray:
+    """The plateaus' variance without their 1/f part: sem^2 - 2 ln2 tau_s^2 ([IEEE952] C.3 floor; not below
+    0.1 sem^2), tau_s^2 = ``sem_tau2``, the 1/f level the sems contain (segmentation's SEM model,
+    :func:`sem_flicker_tau2`), or the weighed ``tau2`` when that is not known.
+
+    Why the sems' own level: a plateau's sem is sigma_A(T) of the run's SEM model, whose 1/f term enters only when the
+    model selection admits it. Where it left it out (tactical accelerometer: floor ~ white at T = 15 s) the sems are
+    white only, and subtracting the device record's floor took most of the white noise away (0.1 sem^2 kept).
+    """
+    D0 = np.asarray(sig, float) ** 2
+    floor = FLICKER_WHITE * (tau2 if sem_tau2 is None else max(float(sem_tau2), 0.0))
+    return np.maximum(D0 - floor, 0.1 * D0)
+
+
+def flicker_covariance(sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray, tau2: float,
+                       sem_tau2: float | None = None) -> np.ndarray:
+    """Sigma = diag(:func:`white_variance`) + tau^2 G of :func:`flicker_gls` (G double-centred plus the Allan floor)."""
     D0 = np.asarray(sig, float) ** 2
     if not tau2 > 0:
         return np.diag(D0)
     G = log_kernel(t_mid, t_len)
-    white = 2.0 * np.log(2.0)
-    G = G - G.mean(axis=0, keepdims=True) - G.mean(axis=1, keepdims=True) + G.mean() + white
-    return np.diag(np.maximum(D0 - white * tau2, 0.1 * D0)) + tau2 * G
+    G = G - G.mean(axis=0, keepdims=True) - G.mean(axis=1, keepdims=True) + G.mean() + FLICKER_WHITE
+    return np.diag(white_variance(sig, tau2, sem_tau2)) + tau2 * G
 
 
 def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray, t_len: np.ndarray,
-                tau2: float | None = None, prior_dof: float | None = None):
+                tau2: float | None = None, prior_dof: float | None = None, sem_tau2: float | None = None):
     """GLS with Sigma = diag(sem^2) + tau^2 G (G = :func:`log_kernel`), tau^2 >= 0 by REML ([PATTERSON1971]).
 
     Bias instability (flicker) makes plateau errors correlated over the run: low-frequency contrasts (up vs down
@@ -638,6 +670,7 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
     is uncertain (nu 2-60): taken as exact, an underestimated B gives large z (accelerometer bias z sd 1.16-1.17,
     tactical and consumer, 1.01-1.07 with the true B, in 900 simulated position runs; 1.03-1.07 marginalised).
     A sem-based upper bound on tau^2 is not used: the sems are computed from the same B (circular).
+    ``sem_tau2``: the 1/f level the sems contain (:func:`white_variance`).
     """
     from scipy.optimize import minimize_scalar
 
@@ -651,8 +684,7 @@ def flicker_gls(X: np.ndarray, y: np.ndarray, sig: np.ndarray, t_mid: np.ndarray
     scale = float(np.median(D0))
 
     def parts(tau2):
-        D = np.maximum(D0 - white * tau2, 0.1 * D0)
-        S = np.diag(D) + tau2 * G
+        S = np.diag(white_variance(sig, tau2, sem_tau2)) + tau2 * G
         L = np.linalg.cholesky(S)
         Xw = np.linalg.solve(L, X)
         yw = np.linalg.solve(L, y)
@@ -750,10 +782,10 @@ def flicker_b_dof(p, channel: str, max_cluster_fraction: float = 0.5) -> float |
     got = _floor_inputs(p, channel, detected_only=True)
     if got is None:
         return None
-    b, n, T, sem2 = got
+    b, n, T, sem2, f_sem = got
     F = FLICKER_WHITE / np.pi * b**2
     try:
-        vF = _flicker_floor_var(n, T, sem2, F, F, max_cluster_fraction)
+        vF = _flicker_floor_var(n, T, sem2, f_sem, F, max_cluster_fraction)
     except np.linalg.LinAlgError:
         return None
     return float(FLICKER_DOF_EFFICIENCY * 2.0 * F**2 / vF) if vF > 0 else None
@@ -789,9 +821,10 @@ def flicker_dof_from_interval(b: float, lo: float, hi: float, level: float = 0.9
 
 
 def _floor_inputs(p, channel: str, detected_only: bool):
-    """(B, n_samples, length_s, sem^2) of a channel's usable plateaus (>= 4 samples, positive length, finite sem)
-    from a plateau table, or None without the columns, with fewer than two such plateaus, or with B missing
-    (negative or NaN; also zero when ``detected_only``)."""
+    """(B, n_samples, length_s, sem^2, F_sem) of a channel's usable plateaus (>= 4 samples, positive length, finite
+    sem) from a plateau table, or None without the columns, with fewer than two such plateaus, or with B missing
+    (negative or NaN; also zero when ``detected_only``). F_sem = 2 ln2 tau_s^2, the Allan floor the sems contain
+    (:func:`sem_flicker_tau2`; that of B for a table without the column): sem^2 - F_sem is a plateau's white part."""
     need = (f"{channel}_sem", f"{channel}_flicker_b", "n_samples", "t_start_s", "t_end_s")
     if any(c not in p for c in need) or not len(p):
         return None
@@ -804,7 +837,9 @@ def _floor_inputs(p, channel: str, detected_only: bool):
     ok = (n >= 4) & (T > 0) & np.isfinite(sem2)
     if ok.sum() < 2:
         return None
-    return b, n[ok], T[ok], sem2[ok]
+    ts = sem_flicker_tau2(p, channel)
+    f_sem = FLICKER_WHITE * (b**2 / np.pi if ts is None else ts)
+    return b, n[ok], T[ok], sem2[ok], f_sem
 
 
 def _flicker_floor_var(n: np.ndarray, T: np.ndarray, sem2: np.ndarray, f_white: float, F: float,
@@ -854,9 +889,11 @@ class FlickerLaw:
     T: np.ndarray
     sem2: np.ndarray
     max_cluster_fraction: float = 0.5
+    f_sem: float | None = None  # the Allan floor the sems contain (None: f_hat's); sem^2 - f_sem is the white part
 
     def var(self, F: float) -> float:
-        return _flicker_floor_var(self.n, self.T, self.sem2, self.f_hat, F, self.max_cluster_fraction) / FLICKER_DOF_EFFICIENCY
+        f_white = self.f_hat if self.f_sem is None else self.f_sem
+        return _flicker_floor_var(self.n, self.T, self.sem2, f_white, F, self.max_cluster_fraction) / FLICKER_DOF_EFFICIENCY
 
     @cached_property
     def resolution_tau2(self) -> float:
@@ -886,8 +923,8 @@ def flicker_law(p, channel: str, max_cluster_fraction: float = 0.5) -> FlickerLa
     got = _floor_inputs(p, channel, detected_only=False)
     if got is None:
         return None
-    b, n, T, sem2 = got
-    law = FlickerLaw(FLICKER_WHITE / np.pi * b**2, n, T, sem2, max_cluster_fraction)
+    b, n, T, sem2, f_sem = got
+    law = FlickerLaw(FLICKER_WHITE / np.pi * b**2, n, T, sem2, max_cluster_fraction, f_sem)
     try:
         r = law.resolution_tau2
     except np.linalg.LinAlgError:

@@ -37,6 +37,7 @@ from assets_lib.calibration.fit_core import (
     flicker_b_dof,
     flicker_law,
     flicker_prior_tau2,
+    sem_flicker_tau2,
 )
 from assets_lib.calibration.fit_report import (
     coefficient_frame,
@@ -245,7 +246,8 @@ def fit_accel_multiposition(
         f_tau2, f_dof, b_source = dp
         fit = fit_linear(A, y, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha, nuisance=np.array(nuisance),
-                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
+                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof,
+                         sem_flicker_tau2=sem_flicker_tau2(p, ch))
         ks = names.index("scale_factor")
         mis = {}
         for j in others:
@@ -372,7 +374,8 @@ def fit_gyro_static(
         f_tau2, f_dof, b_source = dp or (flicker_prior_tau2(flicker_b(p, ch)), _b_law(p, ch), "")
         fit = fit_linear(A, z, names, sigma=sig, scales=np.array(scales), optional=np.array(optional), rel_tol=rel_tol,
                          pre_excluded=pre, outlier_test=outlier_test, alpha=alpha,
-                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
+                         times=_times(p) if correlated_noise else None, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof,
+                         sem_flicker_tau2=sem_flicker_tau2(p, ch))
         if np.any(Cm):
             # x = P z with z = y - W m: Cov += P W Cm W^T P^T (rate-fit uncertainty of the earth-rate projection)
             obs = np.flatnonzero(fit.observable)

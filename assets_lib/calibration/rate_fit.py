@@ -67,6 +67,7 @@ from assets_lib.calibration.fit_core import (
     flicker_covariance,
     flicker_gls,
     flicker_prior_tau2,
+    sem_flicker_tau2,
 )
 from assets_lib.calibration.fit_report import (
     coefficient_frame,
@@ -216,14 +217,15 @@ def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.n
         if np.linalg.matrix_rank(Xa) == Xa.shape[1] and len(used) > Xa.shape[1] + 2:
             given = flicker_tau2 is not None and flicker_tau2 > 0  # not FLICKER_UNDETECTED: then REML as before
             tau2 = flicker_gls(Xa, (fit.fitted + fit.residual)[used], sig, t_mid, t_len,
-                               tau2=flicker_tau2 if given else None, prior_dof=flicker_tau2_dof if given else None)[0]
+                               tau2=flicker_tau2 if given else None, prior_dof=flicker_tau2_dof if given else None,
+                               sem_tau2=fit.sem_flicker_tau2)[0]
         else:
             tau2 = fit.flicker_tau2
     # between-plateau noise: the 1/f model when the fit has one, else the scatter's variance factor
     var_unit = 1.0 if correlated else (fit.scale if fit.cov_policy in ("residual", "pooled") else 1.0)
     if not np.isfinite(var_unit):
         return (float(np.abs(r[j]) / fs), np.nan, np.nan, float(x[idx[j]]), fs, len(idx))
-    S = flicker_covariance(sig, t_mid, t_len, tau2) if tau2 > 0 else np.diag(sig**2)
+    S = flicker_covariance(sig, t_mid, t_len, tau2, fit.sem_flicker_tau2) if tau2 > 0 else np.diag(sig**2)
     L = np.linalg.cholesky(S)
     Q, _ = np.linalg.qr(np.linalg.solve(L, A[np.ix_(used, np.flatnonzero(fit.observable))]))
     # residual of the GLS fit: r = L (I - Q Q^T) L^-1 e, e ~ N(0, var_unit S)
@@ -501,7 +503,7 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=optional, rel_tol=rel_tol, pre_excluded=pre_i,
                      outlier_test=outlier_test, alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(om[:, i], rate_rows), nuisance=nuisance,
-                     times=tm, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
+                     times=tm, flicker_tau2=f_tau2, flicker_tau2_dof=f_dof, sem_flicker_tau2=sem_flicker_tau2(p, ch))
     ks = names.index("scale_factor")
     K, sK = fit.get("scale_factor")
     b, sb = fit.get("bias")
@@ -539,7 +541,8 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
     pre_line = {int(r): fit.exclusion_reason[r] for r in np.flatnonzero(~fit.used)}
     fit_line = fit_linear(A[:, line], y, [n for n in names if n != "sf_asymmetry_term"], sigma=sig, scales=scales[line],
                           optional=optional[line], rel_tol=rel_tol, pre_excluded=pre_line, outlier_test=False,
-                          nuisance=nuisance[line], times=tm, flicker_tau2=fit.flicker_tau2 or None)
+                          nuisance=nuisance[line], times=tm, flicker_tau2=fit.flicker_tau2 or None,
+                          sem_flicker_tau2=fit.sem_flicker_tau2)
     K_line = fit_line.get("scale_factor")[0]
     nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit_line, A[:, line], om[:, i], rate_rows, K_line, tm)
     kp, sp, kn, sn, asym, sasym, fa = hinge_coefficients(fit, ks, names.index("sf_asymmetry_term"))

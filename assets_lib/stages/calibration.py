@@ -39,7 +39,7 @@ def enough_plateaus_kept(out: StageOutput) -> str | None:
             f"flagged: {why}")[:400]
 
 
-@stage("plateaus", level="capture", group="calibration", code_version="1", upstream=["ingested_run"],
+@stage("plateaus", level="capture", group="calibration", code_version="2", upstream=["ingested_run"],
        applies_to=CALIBRATION_KINDS,
        gates=[Gate("enough_plateaus_kept", enough_plateaus_kept,
                    f"At least {MIN_PLATEAU_FRACTION:.0%} of the plan's steps give an unflagged plateau.")])
@@ -86,7 +86,7 @@ def _prior_meta(prior: DeviceNoisePrior | None) -> dict:
     return {"noise_prior": {} if prior is None else {c.channel: c.source for c in prior.channels}}
 
 
-@stage("gyro_rate_fit", level="capture", group="calibration", code_version="3", upstream=["plateaus"],
+@stage("gyro_rate_fit", level="capture", group="calibration", code_version="4", upstream=["plateaus"],
        siblings=["allan_deviation"], applies_to=("rate",))
 def gyro_rate_fit(key: str, inputs) -> StageOutput:
     """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus ([SEED003] eq. 3,
@@ -104,7 +104,7 @@ def gyro_rate_fit(key: str, inputs) -> StageOutput:
     )
 
 
-@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="3", upstream=["plateaus"],
+@stage("accel_multiposition_fit", level="capture", group="calibration", code_version="4", upstream=["plateaus"],
        siblings=["allan_deviation"], applies_to=("multiposition", "tumble"))
 def accel_multiposition_fit(key: str, inputs) -> StageOutput:
     """Accelerometer scale, bias, misalignment, K2 and cross-coupling from any position schedule ([SEED000] eq.

@@ -85,6 +85,7 @@ def plateau_columns() -> list[str]:
     cols += [f"omega_ref_{a}_radps" for a in "xyz"] + [f"omega_earth_{a}_radps" for a in "xyz"]
     cols += [f"f_ref_{a}_mps2" for a in "xyz"] + ["flagged", "flag_reason"]
     cols += [f"{ch}_flicker_b" for ch in CHANNELS]  # run's pooled bias instability B (channel units)
+    cols += [f"{ch}_sem_flicker_b" for ch in CHANNELS]  # the B in the sems: the SEM model's term (0: left out)
     return cols
 
 
@@ -283,5 +284,7 @@ def _segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None, config
         # correlated-noise GLS needs the run mean's 1/f wander (accel bias z sd 1.3-1.7 with B read as 0)
         fl = fit.flicker_avar_best
         df[f"{ch}_flicker_b"] = float(np.sqrt(fl * np.pi / (2 * np.log(2))))
+        # the B the sems contain (the selected term only): the fits' white part is sem^2 minus its floor
+        df[f"{ch}_sem_flicker_b"] = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
     return SegmentationResult(df, method, alignment, detection, shifts, tuple(unmatched), window_step, keep,
                               noise_fits, tuple(warnings))
