@@ -544,7 +544,11 @@ def _fit_axis(p, pre, i, *, sigma_ok, g_sens, outlier_test, saturation_test, alp
                           nuisance=nuisance[line], times=tm, flicker_tau2=fit.flicker_tau2 or None,
                           sem_flicker_tau2=fit.sem_flicker_tau2)
     K_line = fit_line.get("scale_factor")[0]
-    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit_line, A[:, line], om[:, i], rate_rows, K_line, tm)
+    # the floor's 1/f level from the fit's own input (the device record's B with its law) and the plateaus' REML, as the
+    # means fit has it: the REML alone (0 or several times the truth) put the tactical floor's residual sd at 0.965 of
+    # the simulated truth's, 0.991 with the input (90 quick_rate axes, 3 h records)
+    nl, nls, floor, at, fs, nsw = sweep_nonlinearity(fit_line, A[:, line], om[:, i], rate_rows, K_line, tm,
+                                                      flicker_tau2=f_tau2, flicker_tau2_dof=f_dof)
     kp, sp, kn, sn, asym, sasym, fa = hinge_coefficients(fit, ks, names.index("sf_asymmetry_term"))
     if not np.isfinite(asym):
         fa = None
