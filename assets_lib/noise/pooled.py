@@ -46,6 +46,11 @@ class PooledAllanFit:
         return 3 * self.q2[k] / tau**2 + self.n2[k] / tau + self.flicker_avar + self.k2 * tau / 3
 
 
+def flicker_b_of_avar(avar: float) -> float:
+    """[IEEE952] C.3: the bias-instability coefficient B of an Allan floor (2 ln2 / pi) B^2 (0 for a floor <= 0)."""
+    return float(np.sqrt(max(float(avar), 0.0) * np.pi / (2 * np.log(2))))
+
+
 def overlapping_avar(x: np.ndarray, m_list) -> tuple[np.ndarray, np.ndarray]:
     """[NIST1065] eq. 11 (overlapping Allan variance) of rate samples ``x`` at cluster sizes ``m_list``.
 

@@ -20,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from assets_lib.calibration.segmentation import CHANNELS
+from assets_lib.noise.pooled import flicker_b_of_avar
 from assets_lib.sim.noise import AllanParams, allan_noise
 from assets_lib.simreal.experiment import CHANNEL_NAMES, DeviceExperiment, RunInputs
 
@@ -292,7 +293,7 @@ def _noise(exp: DeviceExperiment) -> tuple:
             vals.append((float(np.sqrt(np.median(fit.q2))), float(np.sqrt(np.median(fit.n2))),
                          float(np.sqrt(max(fit.k2, 0.0)))))
         v = np.median(np.array(vals), axis=0) if vals else np.zeros(3)
-        b = float(np.sqrt(np.mean(fl) * np.pi / (2 * np.log(2)))) if fl else 0.0
+        b = flicker_b_of_avar(np.mean(fl)) if fl else 0.0
         out.append(AllanParams(q=v[0], n=v[1], b=b, k=v[2]))
     return tuple(out)
 

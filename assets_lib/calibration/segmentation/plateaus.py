@@ -27,7 +27,7 @@ from assets_lib.calibration.segmentation.detection import (
     match_plan,
 )
 from assets_lib.calibration.segmentation.window_stats import plateau_sem
-from assets_lib.noise.pooled import TWO_PI
+from assets_lib.noise.pooled import TWO_PI, flicker_b_of_avar
 from assets_lib.sim.earth import site_gravity_mps2
 from assets_lib.sim.kinematics import body_inputs, kinematics_cache
 from raw_schemas.tables import ACCEL_COLUMNS, GYRO_COLUMNS
@@ -282,9 +282,8 @@ def _segment_run(manifest, imu: pd.DataFrame, table: pd.DataFrame | None, config
     for ch, fit in noise_fits.items():  # [IEEE952] C.3: flicker plateau (2 ln2 / pi) B^2 -> B, shared by the run
         # the B estimate also when the SEM model selection left it out (too weak within plateaus): the fits'
         # correlated-noise GLS needs the run mean's 1/f wander (accel bias z sd 1.3-1.7 with B read as 0)
-        fl = fit.flicker_avar_best
-        df[f"{ch}_flicker_b"] = float(np.sqrt(fl * np.pi / (2 * np.log(2))))
+        df[f"{ch}_flicker_b"] = flicker_b_of_avar(fit.flicker_avar_best)
         # the B the sems contain (the selected term only): the fits' white part is sem^2 minus its floor
-        df[f"{ch}_sem_flicker_b"] = float(np.sqrt(max(fit.flicker_avar, 0.0) * np.pi / (2 * np.log(2))))
+        df[f"{ch}_sem_flicker_b"] = flicker_b_of_avar(fit.flicker_avar)
     return SegmentationResult(df, method, alignment, detection, shifts, tuple(unmatched), window_step, keep,
                               noise_fits, tuple(warnings))
