@@ -373,12 +373,12 @@ def nonlinearity_rows(base: dict, p: pd.DataFrame, means: dict, dev, nonlin) -> 
             continue
         q = p.loc[rows]
         # the fit's own line: its weights (sems) and its 1/f level (tau^2 = B^2 / pi, REML'd or the run's)
-        tau2 = mf.fit.flicker_tau2
+        tau2, ts = mf.fit.flicker_tau2, mf.fit.sem_flicker_tau2
         times = (q["t_start_s"].to_numpy(float)[used], q["t_end_s"].to_numpy(float)[used]) if tau2 > 0 else None
         tru = fit_rate_means((om - ea)[rows, i][used], true_y[rows, i][used],
                              q[f"gyro_{a}_radps_sem"].to_numpy(float)[used], rate_unit="rad/s", output_unit="rad/s",
                              times=times, flicker_b=float(np.sqrt(np.pi * tau2)) if tau2 > 0 else None,
-                             exclusion="none")
+                             sem_flicker_b=None if ts is None else float(np.sqrt(np.pi * ts)), exclusion="none")
         t = tru.coefficient("nonlinearity").value
         out.append(_row(base, "gyro", a, "nonlinearity", "means", co.value, co.stderr, co.ci95_low, co.ci95_high, t))
     return out
@@ -515,15 +515,17 @@ def flicker_options(p: pd.DataFrame, channel: str, prior=None) -> dict:
     """The 1/f level a lab passes to ``imulab fit`` for ``channel``: the device's static record as ``imulab allan``
     prints it when it has one (``--flicker-b B --flicker-b-ci LO HI``, or ``--flicker-b-ci 0 BOUND`` where the record
     only bounds B), as the pipeline's stages read it; else the run's own (segmentation's ``*_flicker_b``, with its
-    degrees of freedom)."""
-    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof, flicker_dof_from_interval
+    degrees of freedom); and ``--sem-flicker-b``, the level the table's sems contain (``*_sem_flicker_b``)."""
+    from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof, flicker_dof_from_interval, sem_flicker_tau2
 
     c = None if prior is None else prior.get(channel)
+    ts = sem_flicker_tau2(p, channel)  # the table's *_sem_flicker_b (None: no column, or not a level)
+    sem_b = {} if ts is None else {"sem_flicker_b": float(np.sqrt(np.pi * ts))}
     if c is not None and c.is_upper_bound:
-        return {"flicker_b_max": c.bound}
+        return {"flicker_b_max": c.bound, **sem_b}
     if c is not None:
-        return {"flicker_b": c.b, "flicker_b_dof": flicker_dof_from_interval(c.b, c.ci_lo, c.ci_hi, c.ci_level)}
-    return {"flicker_b": flicker_b(p, channel), "flicker_b_dof": flicker_b_dof(p, channel)}
+        return {"flicker_b": c.b, "flicker_b_dof": flicker_dof_from_interval(c.b, c.ci_lo, c.ci_hi, c.ci_level), **sem_b}
+    return {"flicker_b": flicker_b(p, channel), "flicker_b_dof": flicker_b_dof(p, channel), **sem_b}
 
 
 def rate_means(p: pd.DataFrame, prior=None) -> dict:

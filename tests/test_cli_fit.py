@@ -146,6 +146,48 @@ def test_fit_rate_cli_times_and_flicker_level_are_the_scored_fit(tmp_path):
     assert np.isclose(json.loads(out3.read_text())["flicker_b_dof"], flicker_dof_from_interval(3e-4, 2e-4, 5e-4))
 
 
+def test_fit_cli_sem_flicker_level_is_the_scored_fit(tmp_path):
+    """`--sem-flicker-b` (the 1/f level the sems contain: the plateau table's <channel>_sem_flicker_b, 0 for white
+    sems) prints exactly fit_rate_means / fit_tumble_means with that level, records it in the JSON, and changes the
+    intervals against the default reading (the sems taken to contain the weighed level's floor)."""
+    from assets_lib.calibration.means_fit import fit_rate_means, fit_tumble_means
+
+    f, rates, means, sem, times = _rate_table_with_times(tmp_path)
+    common = ["fit", "rate", "--means", str(f), "--rate-column", "rate_dps", "--output-column", "mean_V",
+              "--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b", "1e-4",
+              "--flicker-b-dof", "50"]
+    out, out0 = tmp_path / "s.json", tmp_path / "d.json"
+    r = CliRunner().invoke(main, common + ["--sem-flicker-b", "0", "--json", str(out)])
+    r0 = CliRunner().invoke(main, common + ["--json", str(out0)])
+    assert r.exit_code == 0 and r0.exit_code == 0, r.output + r0.output
+    d, d0 = json.loads(out.read_text()), json.loads(out0.read_text())
+    assert d["sem_flicker_b"] == 0 and d0["sem_flicker_b"] is None
+    ref = fit_rate_means(rates, means, sem, output_unit="V", times=times, flicker_b=1e-4, flicker_b_dof=50.0,
+                         sem_flicker_b=0.0)
+    got = {c["name"]: c["stderr"] for c in d["coefficients"]}
+    dflt = {c["name"]: c["stderr"] for c in d0["coefficients"]}
+    assert np.isclose(got["scale_factor"], ref.coefficient("scale_factor").stderr, rtol=1e-12)
+    assert np.isclose(got["nonlinearity"], ref.coefficient("nonlinearity").stderr, rtol=1e-12)
+    assert not np.isclose(got["zero_output"], dflt["zero_output"], rtol=1e-3)
+    # the tumble fit takes it the same way
+    th = np.arange(0.0, 360.0, 30.0)
+    s_, c_ = np.sin(np.radians(th)), np.cos(np.radians(th))
+    y = 0.01 + 1.001 * s_ + 1e-4 * s_**2 + 2e-4 * c_ + np.random.default_rng(4).normal(0, 5e-5, th.size)
+    t0 = np.arange(th.size) * 60.0
+    tf = tmp_path / "tumble.csv"
+    tf.write_text("angle_deg,mean_V,sem_V,t0_s,t1_s\n" + "".join(
+        f"{float(a)!r},{float(v)!r},5e-05,{float(t)!r},{float(t) + 30.0!r}\n" for a, v, t in zip(th, y, t0)))
+    out_t = tmp_path / "t.json"
+    rt = CliRunner().invoke(main, ["fit", "tumble", "--means", str(tf), "--sem-column", "sem_V", "--start-column",
+                                   "t0_s", "--end-column", "t1_s", "--misalignment-term", "--flicker-b", "4e-5",
+                                   "--sem-flicker-b", "0", "--json", str(out_t)])
+    assert rt.exit_code == 0, rt.output
+    reft = fit_tumble_means(th, y, np.full(th.size, 5e-5), output_unit="V", misalignment_term=True,
+                            times=(t0, t0 + 30.0), flicker_b=4e-5, sem_flicker_b=0.0)
+    gt = {c["name"]: c["stderr"] for c in json.loads(out_t.read_text())["coefficients"]}
+    assert np.isclose(gt["K1"], reft.coefficient("K1").stderr, rtol=1e-12)
+
+
 def test_fit_rate_cli_takes_an_upper_bound_on_b(tmp_path):
     """A record that only bounds B (imulab allan prints [0, bound]): `--flicker-b-ci 0 BOUND` alone integrates the 1/f
     level below the bound (fit_rate_means(flicker_b_max=...)), which is narrower than taking the bound as B."""
@@ -181,6 +223,9 @@ def test_fit_cli_noise_options_fail_clearly(tmp_path):
         (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--flicker-b-ci", "0", "-1"],
          "positive number"),
         (["--sem-column", "sem_V", "--flicker-b-ci", "0", "2e-4"], "need the plateau times"),
+        (["--sem-column", "sem_V", "--sem-flicker-b", "0"], "needs the plateau times"),
+        (["--sem-column", "sem_V", "--start-column", "t0_s", "--end-column", "t1_s", "--sem-flicker-b", "-1e-4"],
+         "--sem-flicker-b must be >= 0"),
     ]
     for extra, msg in cases:
         r = CliRunner().invoke(main, base + extra)

@@ -432,3 +432,36 @@ def test_means_nonlinearity_stderr_uses_the_runs_flicker_level():
     fs = 1.01 * np.max(np.abs(w))
     assert given.stderr > 1.5 * plain.stderr
     assert np.min(sd) / fs * 1e6 * 0.8 < given.stderr < np.max(sd) / fs * 1e6 * 1.25
+
+
+def test_means_fit_reads_white_only_sems_as_white():
+    """Sems computed as std/sqrt(n) (white only, as segmentation's SEM model gives them when its selection leaves the
+    1/f term out) plus the run's 1/f level B from its Allan analysis: with ``sem_flicker_b=0`` the means fit keeps
+    the whole sem as the plateau's white part and the scale factor's and zero output's intervals hold; read the old
+    way (the sems taken to contain B's Allan floor, subtracted) they are too narrow. Floor = the white part here,
+    as for the tactical gyro on 15-20 s plateaus."""
+    from assets_lib.calibration.fit_core import FLICKER_WHITE, flicker_covariance
+
+    rng = np.random.default_rng(23)
+    mags = np.radians(np.r_[1.0, 10, 50, 100, 200])
+    w = np.r_[0.0, mags, -mags, 0.0]
+    t0 = np.arange(len(w)) * 45.0
+    t_len = np.full(len(w), 20.0)
+    sem = np.full(len(w), 3e-5)
+    tau2 = sem[0] ** 2 / FLICKER_WHITE
+    L = np.linalg.cholesky(flicker_covariance(sem, t0 + 10.0, t_len, tau2, sem_tau2=0.0))
+    b = float(np.sqrt(np.pi * tau2))
+    z = {0.0: [], None: []}
+    for _ in range(300):
+        y = 2e-4 + 1.002 * w + L @ rng.standard_normal(len(w))
+        for sb in z:
+            f = fit_rate_means(w, y, sem, rate_unit="rad/s", times=(t0, t0 + t_len), exclusion="none", flicker_b=b,
+                               flicker_b_dof=1e6, sem_flicker_b=sb)
+            z[sb].append([(f.coefficient("scale_factor").value - 1.002) / f.coefficient("scale_factor").stderr,
+                          (f.coefficient("zero_output").value - 2e-4) / f.coefficient("zero_output").stderr])
+    new, old = np.array(z[0.0]), np.array(z[None])
+    assert np.all((0.88 < new.std(axis=0)) & (new.std(axis=0) < 1.12)), new.std(axis=0)
+    assert np.all(np.abs(new.mean(axis=0)) < 0.15)
+    assert old[:, 0].std() > 1.1 * new[:, 0].std(), (old.std(axis=0), new.std(axis=0))
+    with pytest.raises(ValueError, match="sem_flicker_b"):
+        fit_rate_means(w, y, sem, rate_unit="rad/s", times=(t0, t0 + t_len), sem_flicker_b=-1.0)

@@ -175,6 +175,15 @@ def _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max):
     return t2, FlickerBoundLaw(t2)
 
 
+def _sem_tau2(sem_flicker_b):
+    """tau_s^2 = B_s^2 / pi of the 1/f level the sems contain, or None (not given); ValueError unless B_s >= 0."""
+    if sem_flicker_b is None:
+        return None
+    if not (np.isfinite(sem_flicker_b) and sem_flicker_b >= 0):
+        raise ValueError(f"sem_flicker_b must be >= 0 (0: the sems are white only), not {sem_flicker_b}")
+    return float(sem_flicker_b) ** 2 / np.pi
+
+
 def fit_rate_means(
     rate,
     output,
@@ -189,6 +198,7 @@ def fit_rate_means(
     flicker_b: float | None = None,
     flicker_b_dof: float | None = None,
     flicker_b_max: float | None = None,
+    sem_flicker_b: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 1-3: U = U0 + K w by least squares over plateau means, with automatic exclusions.
 
@@ -207,7 +217,12 @@ def fit_rate_means(
     the fit then integrates over the 1/f level instead of taking B as exact. ``flicker_b_max`` (instead of
     ``flicker_b``): only an upper bound on B, as an Allan analysis of a record too short to resolve the floor gives
     it (``imulab allan``'s interval [0, bound]): integrated over below the bound
-    (:class:`~assets_lib.calibration.fit_core.FlickerBoundLaw`).
+    (:class:`~assets_lib.calibration.fit_core.FlickerBoundLaw`). ``sem_flicker_b``: the 1/f level B the ``sem``
+    already contain (imulab's plateau table: ``<channel>_sem_flicker_b``; 0 for sems that are white only, as
+    std/sqrt(n) of a plateau's samples): a plateau's white part is then sem^2 less that level's Allan floor whatever
+    1/f level the GLS weighs (:func:`~assets_lib.calibration.fit_core.white_variance`); without it the sems are read
+    as containing the floor of the level weighed (tactical means-fit nonlinearity coverage 0.90-0.93 with sems that
+    did not).
     """
     _check_mode(exclusion)
     if rate_unit not in GYRO_UNITS_TO_RADPS:
@@ -228,10 +243,11 @@ def fit_rate_means(
     note = compression_note(w, sweep, sat, sign_gain=np.sign(np.nanmedian(np.diff(y[np.argsort(w)])) or 1.0))
     tm = _plateau_times(times, len(w))
     prior_tau2, prior_dof = _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max)
+    sem_tau2 = _sem_tau2(sem_flicker_b)
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, rel_tol=rel_tol, pre_excluded=sat,
                      outlier_test=exclusion == "auto", alpha=alpha, outlier_note=note,
                      screen_columns=sweep_screen_columns(w, np.isfinite(w)), times=tm,
-                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
+                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof, sem_flicker_tau2=sem_tau2)
     U0, sU0 = fit.get("zero_output")
     K, sK = fit.get("scale_factor")
     k = fit.names.index("scale_factor")
@@ -256,7 +272,8 @@ def fit_rate_means(
     # line's: a REML under the straight line reads an asymmetry's |w| misfit as 1/f noise (tau^2 up to 1e4x the
     # truth), which widened K+, K- and the asymmetry (z sd 0.55-0.65 with asymmetry injected, coverage 0.99)
     kp, sp, kn, sn, asym, sasym, fa = sweep_asymmetry(A, names, y, sig, w, 1, pre_asym, scales, np.zeros(2, bool), rel_tol,
-                                                      times=tm, flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
+                                                      times=tm, flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof,
+                                                      sem_flicker_tau2=sem_tau2)
     kk = fa.k95 if fa is not None else 1.96
     if fa is not None and np.isfinite(asym) and fa.observable[1]:
         # K = mean(K+, K-) from the hinge fit, as the rate fit reports it: on a symmetric sweep the straight line's
@@ -293,6 +310,7 @@ def fit_tumble_means(
     flicker_b: float | None = None,
     flicker_b_dof: float | None = None,
     flicker_b_max: float | None = None,
+    sem_flicker_b: float | None = None,
 ) -> MeansFit:
     """[SEED001] eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos over tumble positions (a_i = sin theta [g]).
 
@@ -301,7 +319,8 @@ def fit_tumble_means(
     positions cannot separate are reported unobservable (e.g. K2 without a horizontal position).
     ``exclusion``: 'auto' (Bonferroni outlier test) or 'none' ('saturation' and 'flat-top' act like 'none').
     ``times`` / ``flicker_b`` / ``flicker_b_dof`` / ``flicker_b_max``: plateau (t_start_s, t_end_s), the run's 1/f
-    level and its degrees of freedom, or only a bound on it, as in :func:`fit_rate_means`.
+    level and its degrees of freedom, or only a bound on it, and ``sem_flicker_b``, the level the sems contain, as in
+    :func:`fit_rate_means`.
     """
     _check_mode(exclusion)
     if angle_unit not in ANGLE_UNITS_TO_RAD:
@@ -327,7 +346,7 @@ def fit_tumble_means(
     prior_tau2, prior_dof = _flicker_inputs(flicker_b, flicker_b_dof, flicker_b_max)
     fit = fit_linear(A, y, names, sigma=sig, scales=scales, optional=np.array(optional), rel_tol=rel_tol,
                      outlier_test=exclusion == "auto", alpha=alpha, times=_plateau_times(times, len(th)),
-                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof)
+                     flicker_tau2=prior_tau2, flicker_tau2_dof=prior_dof, sem_flicker_tau2=_sem_tau2(sem_flicker_b))
     coefs = []
     units = {"K0": ou, "K1": f"{ou}/g", "K2": f"{ou}/g^2", "K3": f"{ou}/g^2", "delta_o_term": f"{ou}/g"}
     for j, nm in enumerate(names):

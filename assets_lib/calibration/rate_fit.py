@@ -239,7 +239,7 @@ def sweep_nonlinearity(fit: LinearFit, A: np.ndarray, x: np.ndarray, sweep: np.n
 
 
 def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, str], scales, optional, rel_tol,
-                    nuisance=None, times=None, flicker_tau2=None, flicker_tau2_dof=None):
+                    nuisance=None, times=None, flicker_tau2=None, flicker_tau2_dof=None, sem_flicker_tau2=None):
     """Asymmetry by a hinge term: y = ... + Kbar w + (dK/2)|w| (shared bias); K+- = Kbar +- dK/2.
 
     One fit with a common bias rather than two separate line fits: the bias is anchored by both signs and the
@@ -248,7 +248,8 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     has the main fit's correlated-noise model (``flicker_tau2``): without it K+, K- and the asymmetry lost the 1/f
     noise shared between plateaus (consumer asymmetry coverage 0.88, z sd 1.48 in the full-chain Monte Carlo);
     ``flicker_tau2_dof``: that level's degrees of freedom or sampling law, integrated over as the main fit does
-    (taken as exact, a B read at 2-20x the truth with < 1 dof widened the navigation means-fit asymmetry: z sd 0.91).
+    (taken as exact, a B read at 2-20x the truth with < 1 dof widened the navigation means-fit asymmetry: z sd 0.91);
+    ``sem_flicker_tau2``: the 1/f level the sems contain (:func:`~assets_lib.calibration.fit_core.fit_linear`).
     """
     Ah = np.column_stack([A[:, : main_col + 1], np.abs(x_main), A[:, main_col + 1 :]])
     nh = tuple(names[: main_col + 1]) + ("sf_asymmetry_term",) + tuple(names[main_col + 1 :])
@@ -256,7 +257,8 @@ def sweep_asymmetry(A, names, y, sigma, x_main, main_col: int, pre: dict[int, st
     op = np.r_[optional[: main_col + 1], False, optional[main_col + 1 :]]
     nu = None if nuisance is None else np.r_[nuisance[: main_col + 1], False, nuisance[main_col + 1 :]]
     f = fit_linear(Ah, y, nh, sigma=sigma, scales=sc, optional=op, rel_tol=rel_tol, pre_excluded=pre, outlier_test=False,
-                   nuisance=nu, times=times, flicker_tau2=flicker_tau2, flicker_tau2_dof=flicker_tau2_dof)
+                   nuisance=nu, times=times, flicker_tau2=flicker_tau2, flicker_tau2_dof=flicker_tau2_dof,
+                   sem_flicker_tau2=sem_flicker_tau2)
     return hinge_coefficients(f, main_col, main_col + 1)
 
 

@@ -6,11 +6,15 @@
   imulab fit rate --means rate.csv --sem-column sem_V --start-column t0_s --end-column t1_s \\
       --flicker-b 3e-4 --flicker-b-ci 2e-4 5e-4
   imulab fit rate ... --flicker-b-ci 0 4e-8       # a record that only bounds B (imulab allan: 'upper bound')
+  imulab fit rate ... --flicker-b 3e-4 --sem-flicker-b 0   # sems that are white only (std / sqrt(n))
 
 With each plateau's start and end time (and the sems) the fit models the 1/f (bias-instability) noise the plateaus
 share (correlated-noise GLS, fit_core.flicker_gls): its level from the plateaus by REML, or the run's B from an Allan
 analysis of the output (``imulab allan``) with its interval, integrated over, or only its upper bound (an interval
-printed as [0, bound]: a record too short to resolve the 1/f floor), integrated over below it. This is the fit the
+printed as [0, bound]: a record too short to resolve the 1/f floor), integrated over below it. ``--sem-flicker-b``
+says which 1/f level the sems already contain (imulab's plateau table: ``<channel>_sem_flicker_b``; 0 for sems
+computed as std / sqrt(n)), so that a plateau's white part is its sem less that floor; without it the sems are read
+as containing the floor of the level the fit weighs. This is the fit the
 coverage benchmark scores as ``imulab fit rate`` / ``fit tumble``; without times the plateaus are independent and a
 warning says the intervals leave out the shared noise.
 """
@@ -74,8 +78,10 @@ def _numbers(path: Path, df: pd.DataFrame, col: str) -> np.ndarray:
     return v.to_numpy(float)
 
 
-def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker_b, flicker_b_dof, flicker_b_ci):
-    """(times, flicker_b, flicker_b_dof, warnings) for the correlated-noise fit from the options (module doc)."""
+def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker_b, flicker_b_dof, flicker_b_ci,
+                  sem_flicker_b=None):
+    """(times, flicker_b, flicker_b_dof, flicker_b_max, warnings) for the correlated-noise fit from the options
+    (module doc)."""
     if (start_col is None) != (end_col is None):
         raise click.ClickException("--start-column and --end-column go together (each plateau's start and end time, s)")
     if flicker_b_dof is not None and flicker_b_ci is not None:
@@ -111,6 +117,11 @@ def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker
                      "for a sensor whose bias wanders between plateaus")
     if (flicker_b is not None or bound) and times is None:
         raise click.ClickException("--flicker-b / --flicker-b-ci need the plateau times (--start-column/--end-column)")
+    if sem_flicker_b is not None and times is None:
+        raise click.ClickException("--sem-flicker-b (the 1/f level the sems contain) is read by the correlated-noise "
+                                   "fit: it needs the plateau times (--start-column/--end-column)")
+    if sem_flicker_b is not None and not (np.isfinite(sem_flicker_b) and sem_flicker_b >= 0):
+        raise click.ClickException(f"--sem-flicker-b must be >= 0 (0: the sems are white only), not {sem_flicker_b}")
     if flicker_b is not None and not (np.isfinite(flicker_b) and flicker_b >= 0):
         raise click.ClickException(f"--flicker-b must be >= 0 (0: looked for and not detected), not {flicker_b}")
     if bound:
@@ -124,9 +135,9 @@ def _noise_inputs(path: Path, df: pd.DataFrame, sem, start_col, end_col, flicker
     return times, flicker_b, flicker_b_dof, None, notes
 
 
-def _noise_json(times, b, b_dof, b_max, notes) -> dict:
+def _noise_json(times, b, b_dof, b_max, sem_b, notes) -> dict:
     return {"correlated_noise": times is not None, "flicker_b": b, "flicker_b_dof": b_dof, "flicker_b_max": b_max,
-            "input_warnings": list(notes)}
+            "sem_flicker_b": sem_b, "input_warnings": list(notes)}
 
 
 def _fmt(v: float) -> str:
@@ -220,6 +231,10 @@ _common = [
                  help="B's 95 %% interval LOW HIGH as imulab allan prints it: its degrees of freedom are read "
                       "from it (B^2 as a scaled chi-square). An upper bound (LOW 0, given without --flicker-b): "
                       "the 1/f level is integrated over below HIGH."),
+    click.option("--sem-flicker-b", type=float, default=None,
+                 help="The 1/f level B the sems already contain (imulab's plateau table: <channel>_sem_flicker_b; "
+                      "0 for sems that are white only, as std/sqrt(n)). Default: the sems are taken to contain the "
+                      "Allan floor of the level the fit weighs."),
     click.option("--exclusion", type=click.Choice(EXCLUSION_MODES), default="auto", show_default=True,
                  help="auto: saturation (flat tops and plateaus at the rail) + Bonferroni outlier test; "
                       "saturation: no outlier test; flat-top: only plateaus whose output stopped following the "
@@ -246,17 +261,18 @@ def command():
 @click.option("--rate-unit", type=click.Choice(sorted(GYRO_UNITS_TO_RADPS)), default="deg/s", show_default=True)
 @click.option("--rate-column", default=None, help="Column of the commanded rate (default: the first numeric column).")
 def rate_cmd(means, output_unit, output_column, sem_column, start_column, end_column, flicker_b, flicker_b_dof,
-             flicker_b_ci, exclusion, alpha, json_path, plot_path, rate_unit, rate_column):
+             flicker_b_ci, sem_flicker_b, exclusion, alpha, json_path, plot_path, rate_unit, rate_column):
     """Seed 001 eq. 1-3: U = U0 + K w with nonlinearity, asymmetry and automatic exclusions."""
     x, y, s, ic, oc, df = _read(means, rate_column, output_column, sem_column, "commanded rate")
     times, b, b_dof, b_max, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
-                                                  flicker_b_ci)
+                                                  flicker_b_ci, sem_flicker_b)
     res = fit_rate_means(x, y, s, rate_unit=rate_unit, output_unit=output_unit, exclusion=exclusion, alpha=alpha,
-                         times=times, flicker_b=b, flicker_b_dof=b_dof, flicker_b_max=b_max)
+                         times=times, flicker_b=b, flicker_b_dof=b_dof, flicker_b_max=b_max,
+                         sem_flicker_b=sem_flicker_b)
     _print(res, f"rate fit of {means} (rate column {ic!r} in {rate_unit}, output column {oc!r} in {output_unit})",
            notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
-                                 "alpha": alpha, "model": "U = U0 + K w", **_noise_json(times, b, b_dof, b_max, notes)})
+                                 "alpha": alpha, "model": "U = U0 + K w", **_noise_json(times, b, b_dof, b_max, sem_flicker_b, notes)})
     _plot(res, plot_path, f"commanded rate [{rate_unit}]")
 
 
@@ -267,20 +283,21 @@ def rate_cmd(means, output_unit, output_column, sem_column, start_column, end_co
 @click.option("--misalignment-term/--no-misalignment-term", default=False, show_default=True,
               help="Add the IEEE 1293 cos(theta) misalignment term to seed 001's model.")
 def tumble_cmd(means, output_unit, output_column, sem_column, start_column, end_column, flicker_b, flicker_b_dof,
-               flicker_b_ci, exclusion, alpha, json_path, plot_path, angle_unit, angle_column, misalignment_term):
+               flicker_b_ci, sem_flicker_b, exclusion, alpha, json_path, plot_path, angle_unit, angle_column,
+               misalignment_term):
     """Seed 001 eq. 5-7: U = K0 + K1 sin + K2 sin^2 + K3 sin cos (a_i = sin(theta) g)."""
     x, y, s, ic, oc, df = _read(means, angle_column, output_column, sem_column, "table angle")
     times, b, b_dof, b_max, notes = _noise_inputs(means, df, s, start_column, end_column, flicker_b, flicker_b_dof,
-                                                  flicker_b_ci)
+                                                  flicker_b_ci, sem_flicker_b)
     res = fit_tumble_means(x, y, s, angle_unit=angle_unit, output_unit=output_unit, misalignment_term=misalignment_term,
                            exclusion=exclusion, alpha=alpha, times=times, flicker_b=b, flicker_b_dof=b_dof,
-                           flicker_b_max=b_max)
+                           flicker_b_max=b_max, sem_flicker_b=sem_flicker_b)
     _print(res, f"tumble fit of {means} (angle column {ic!r} in {angle_unit}, output column {oc!r} in {output_unit})",
            notes)
     _write_json(res, json_path, {"file": str(means), "input_column": ic, "output_column": oc, "exclusion": exclusion,
                                  "alpha": alpha, "model": "U = K0 + K1 sin + K2 sin^2 + K3 sin cos"
                                  + (" + d cos" if misalignment_term else ""),
-                                 **_noise_json(times, b, b_dof, b_max, notes)})
+                                 **_noise_json(times, b, b_dof, b_max, sem_flicker_b, notes)})
     _plot(res, plot_path, f"table angle [{angle_unit}]")
 
 
