@@ -162,12 +162,22 @@ def at_rail(x, y, sem, saturated: dict[int, str], *, n_sem: float = RAIL_SEMS, x
     nonlinearity kept a -250 deg/s plateau sitting on the -250 deg/s rail (true output -250.32): means-fit
     nonlinearity z -14.5 in the coverage benchmark (seed 602, trial 1094); the rate fit kept a 250 deg/s plateau
     pinned at the rail (seed 40961, trial 281). :func:`detect_saturation` applies it after its line test.
+
+    The distance is counted in the larger of the plateau's own sem and the sweep's typical one (median over the
+    unsaturated plateaus): a plateau with most of its samples pinned at the rail code has a sem far below its
+    neighbours' (the clipped samples do not scatter), so its own sem understates how far from the rail clipping
+    reaches (seed 43391, trial 449: a consumer gyro's +250 deg/s plateau 0.001 deg/s below the 250 deg/s rail, sem
+    1.8e-4 deg/s against the sweep's 2.1e-3, 5.4 of its own sems away: kept, means-fit nonlinearity z -11.6). A
+    plateau whose mean lies within 5 typical sems of the rail has clipped samples whatever its sem: its sample
+    scatter is sqrt(n) typical sems.
     """
     out: dict[int, str] = {}
     if sem is None or not saturated:
         return out
     x, y, sem = (np.asarray(v, float) for v in (x, y, sem))
     mid = float(np.nanmedian(y))
+    free = np.array([k not in saturated for k in range(len(y))]) & np.isfinite(sem) & (sem > 0)
+    s_typ = float(np.median(sem[free])) if free.any() else 0.0
     for side in (1.0, -1.0):
         rails = [r for r in saturated if np.sign(y[r] - mid) == side]
         if not rails:
@@ -182,8 +192,9 @@ def at_rail(x, y, sem, saturated: dict[int, str], *, n_sem: float = RAIL_SEMS, x
             if d <= roundoff:
                 out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean equals the rail set "
                                f"by the saturated plateau(s) ({level:.6g}) to round-off: its samples sit at the rail")
-            elif d <= n_sem * np.hypot(sem[k], s_rail):
+            elif d <= n_sem * np.hypot(max(sem[k], s_typ), s_rail):
+                own = "" if sem[k] >= s_typ else " (the sweep's typical ones: its own are smaller, samples pinned)"
                 out[int(k)] = (f"saturated: at input {x[k] * x_factor:+.6g} {x_unit} the mean lies "
-                               f"{d / np.hypot(sem[k], s_rail):.1f} standard errors from the rail set by the "
-                               f"saturated plateau(s) ({level:.6g}): clipped samples bias the mean")
+                               f"{d / np.hypot(max(sem[k], s_typ), s_rail):.1f} standard errors{own} from the rail "
+                               f"set by the saturated plateau(s) ({level:.6g}): clipped samples bias the mean")
     return out

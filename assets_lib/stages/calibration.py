@@ -86,7 +86,7 @@ def _prior_meta(prior: DeviceNoisePrior | None) -> dict:
     return {"noise_prior": {} if prior is None else {c.channel: c.source for c in prior.channels}}
 
 
-@stage("gyro_rate_fit", level="capture", group="calibration", code_version="4", upstream=["plateaus"],
+@stage("gyro_rate_fit", level="capture", group="calibration", code_version="5", upstream=["plateaus"],
        siblings=["allan_deviation"], applies_to=("rate",))
 def gyro_rate_fit(key: str, inputs) -> StageOutput:
     """Gyro scale factor, bias, misalignment, nonlinearity and asymmetry from the rate plateaus ([SEED003] eq. 3,
