@@ -519,7 +519,7 @@ def flicker_options(p: pd.DataFrame, channel: str, prior=None) -> dict:
     from assets_lib.calibration.fit_core import flicker_b, flicker_b_dof, flicker_dof_from_interval, sem_flicker_tau2
 
     c = None if prior is None else prior.get(channel)
-    ts = sem_flicker_tau2(p, channel)  # the table's *_sem_flicker_b (None: no column, or not a level)
+    ts = None if p is None else sem_flicker_tau2(p, channel)  # the table's *_sem_flicker_b (None: none, or not a level)
     sem_b = {} if ts is None else {"sem_flicker_b": float(np.sqrt(np.pi * ts))}
     if c is not None and c.is_upper_bound:
         return {"flicker_b_max": c.bound, **sem_b}
