@@ -174,6 +174,10 @@ def test_ros_unknown_topic_is_named(tmp_path):
             wr.write(conn, int(ns), store.serialize_cdr(_ros_imu(store, ns, w[i], a[i]), "sensor_msgs/msg/Imu"))
     with pytest.raises(RawDataError, match="topic '/nope'.*/imu"):
         import_run("ros", [tmp_path / "b"], tmp_path / "land", RunMeta("dev", "r"), {"topic": "/nope"})
+    # a value the option does not take is refused, not read as the default (header stamps)
+    with pytest.raises(RawDataError, match=r"b, option 'time': expected 'record' or 'header'.*'recorded'"):
+        import_run("ros", [tmp_path / "b"], tmp_path / "land", RunMeta("dev", "r"), {"time": "recorded"})
+    assert not (tmp_path / "land").exists() or not any((tmp_path / "land").rglob("*.parquet"))
 
 
 def test_imu_tk_mismatched_time_is_reported(tmp_path):

@@ -24,7 +24,7 @@ IMU_TYPES = ("sensor_msgs/msg/Imu", "sensor_msgs/Imu")
 #: the ``-o KEY=VALUE`` options this importer reads (key -> one-line description); any other key is refused
 OPTIONS = {
     "topic": "the sensor_msgs/Imu topic (needed when the source holds several)",
-    "time": "'record': time messages by their record time, not the header stamp",
+    "time": "'record': time messages by their record time, not the header stamp ('header', the default)",
     "test_kind": "'static' (default) or 'tablefree'",
 }
 
@@ -130,6 +130,8 @@ def read(sources: list[Path], options: dict) -> ImportedSession:
     if len(sources) != 1:
         raise RawDataError("(sources)", "command line", "one bag file, bag folder or MCAP file", f"{len(sources)}")
     path = sources[0]
+    if options.get("time", "header") not in ("header", "record"):
+        raise RawDataError(path.name, "option 'time'", "'record' or 'header'", repr(options["time"]))
     if not path.exists():
         raise RawDataError(str(path), "", "an existing bag file, bag folder or MCAP file", "no such file")
     if path.is_file() and path.suffix == ".mcap":
