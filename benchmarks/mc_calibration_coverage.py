@@ -67,7 +67,9 @@ Not scored here (stated, so no printed interval passes unchecked):
   (the fit warns: chi-square); scored with the term (below);
 - the rate fit's nonlinearity away from zero (its straight line spans every axis' plateaus; only the means fit's
   statistic is scored there, see above);
-- the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py.
+- the noise terms' own definitions and what they leave out (slope reads, sin_freq): benchmarks/coverage_noise.py;
+- the ``repeatability`` stage's bias and scale-factor repeatability over power-cycled rate and position runs (sample
+  spread and noise-corrected spread with their intervals): benchmarks/coverage_repeatability.py.
 
     python benchmarks/mc_calibration_coverage.py --seed 2027 --trials 2000 --workers 2 --records --noise-every 0 --budget-s 2700
 """
