@@ -129,7 +129,6 @@ import argparse
 import math
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -147,6 +146,7 @@ from coverage_stats import (  # benchmarks/ is on sys.path
     Z95,
     clustered,
     meets_two_sided,
+    run_budgeted,
     write_results,
 )
 from coverage_stats import fmt as _fmt
@@ -347,30 +347,7 @@ def run(seed: int, trials: int, workers: int = 1, duration_s: float = 1200.0, cy
     """Rows of trials 0..trials-1; with ``budget_s``, trials not started within the budget are left out (every
     trial that is scored ran to its end; the number done is the trial count reported)."""
     jobs = [(seed, k, duration_s, cycles) for k in range(trials)]
-    recs: list[dict] = []
-    t0 = time.time()
-    if workers > 1:
-        from concurrent.futures import FIRST_COMPLETED, wait
-
-        with ProcessPoolExecutor(workers) as ex:
-            pending, it = set(), iter(jobs)
-            while True:
-                while len(pending) < 2 * workers and (budget_s is None or time.time() - t0 < budget_s):
-                    j = next(it, None)
-                    if j is None:
-                        break
-                    pending.add(ex.submit(_trial_rows, j))
-                if not pending:
-                    break
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for f in done:
-                    recs.extend(f.result())
-    else:
-        for j in jobs:
-            if budget_s is not None and time.time() - t0 >= budget_s:
-                break
-            recs.extend(_trial_rows(j))
-    return pd.DataFrame(recs)
+    return pd.DataFrame(run_budgeted(_trial_rows, jobs, workers, budget_s))
 
 
 def meets(r: dict) -> bool:

@@ -53,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from coverage_stats import clustered, fmt, meets_two_sided, write_results  # noqa: E402  benchmarks/ on sys.path
+from coverage_stats import clustered, fmt, meets_two_sided, run_budgeted, write_results  # noqa: E402  benchmarks/ on sys.path
 from coverage_stats import TARGET_COVERAGE, TARGET_MEAN_Z, TARGET_SD_Z  # noqa: E402
 
 GRADES = ("navigation", "tactical", "consumer")
@@ -171,30 +171,7 @@ def run(seed: int, trials: int, workers: int, cycles: int, rate_plan: str, pos_p
         budget_s: float | None = None, static_s=None) -> pd.DataFrame:
     """Rows of trials 0..trials-1; with ``budget_s`` no trial starts after that many seconds."""
     jobs = [(seed, k, cycles, rate_plan, pos_plan, spread, static_s) for k in range(trials)]
-    t0 = time.time()
-    recs: list[dict] = []
-    if workers > 1:
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-
-        with ProcessPoolExecutor(workers) as ex:
-            it, pending = iter(jobs), set()
-            while True:
-                while len(pending) < 2 * workers and (budget_s is None or time.time() - t0 < budget_s):
-                    j = next(it, None)
-                    if j is None:
-                        break
-                    pending.add(ex.submit(trial, j))
-                if not pending:
-                    break
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for f in done:
-                    recs.extend(f.result())
-    else:
-        for j in jobs:
-            if budget_s is not None and time.time() - t0 >= budget_s:
-                break
-            recs.extend(trial(j))
-    return pd.DataFrame(recs)
+    return pd.DataFrame(run_budgeted(trial, jobs, workers, budget_s))
 
 
 def summarize(df: pd.DataFrame) -> dict[str, pd.DataFrame]:

@@ -4,6 +4,7 @@ trial-clustered coverage / z statistics, and writing the result files."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,35 @@ def clustered(d: pd.DataFrame) -> dict:
     else:
         out.update(mean_z=np.nan, mean_z_se=np.nan, sd_z=np.nan, sd_z_se=np.nan)
     return out
+
+
+def run_budgeted(fn, jobs: list, workers: int = 1, budget_s: float | None = None) -> list[dict]:
+    """``fn(job)`` (a list of rows) over ``jobs``, on ``workers`` processes; with ``budget_s`` no job starts after that
+    many seconds (every job started runs to its end: a shared machine's honest partial run instead of a killed one)."""
+    t0 = time.time()
+    recs: list[dict] = []
+    if workers > 1:
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+        with ProcessPoolExecutor(workers) as ex:
+            it, pending = iter(jobs), set()
+            while True:
+                while len(pending) < 2 * workers and (budget_s is None or time.time() - t0 < budget_s):
+                    j = next(it, None)
+                    if j is None:
+                        break
+                    pending.add(ex.submit(fn, j))
+                if not pending:
+                    break
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for f in done:
+                    recs.extend(f.result())
+    else:
+        for j in jobs:
+            if budget_s is not None and time.time() - t0 >= budget_s:
+                break
+            recs.extend(fn(j))
+    return recs
 
 
 def meets_two_sided(r) -> bool:
