@@ -147,6 +147,7 @@ from coverage_stats import (  # benchmarks/ is on sys.path
     clustered,
     meets_two_sided,
     run_budgeted,
+    table_lines,
     write_results,
 )
 from coverage_stats import fmt as _fmt
@@ -420,12 +421,7 @@ def markdown(tabs: dict, meta: dict) -> str:
         for r in tabs["z_ln_symmetric"].itertuples():
             lines.append(f"| {r.family} | {r.n} | {_fmt(r.mean_z, r.mean_z_se, '{:+.3f}')} | {_fmt(r.sd_z, r.sd_z_se)} |")
     for name, col in (("family_grade", "grade"), ("family_plan", "plan"), ("family_run", "run")):
-        lines += ["", f"Per family and {col}:", "", f"| family | {col} | n | coverage | mean z | sd z | meets |",
-                  "|---|---|---:|---:|---:|---:|---|"]
-        for r in tabs[name].to_dict("records"):
-            lines.append(f"| {r['family']} | {r[col]} | {r['n']} | {_fmt(r['coverage'], r['coverage_se'])} | "
-                         f"{_fmt(r['mean_z'], r['mean_z_se'], '{:+.3f}')} | {_fmt(r['sd_z'], r['sd_z_se'])} | "
-                         f"{'yes' if r['meets'] else 'no'} |")
+        lines += ["", f"Per family and {col}:", "", *table_lines(tabs[name], ["family", col])]
     lines += ["", "Definitions, truths and what is not scored: the docstring of benchmarks/coverage_noise.py."]
     return "\n".join(lines) + "\n"
 

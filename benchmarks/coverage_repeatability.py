@@ -53,7 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from coverage_stats import clustered, fmt, meets_two_sided, run_budgeted, write_results  # noqa: E402  benchmarks/ on sys.path
+from coverage_stats import clustered, meets_two_sided, run_budgeted, table_lines, write_results  # noqa: E402
 from coverage_stats import TARGET_COVERAGE, TARGET_MEAN_Z, TARGET_SD_Z  # noqa: E402
 
 GRADES = ("navigation", "tactical", "consumer")
@@ -199,19 +199,10 @@ def markdown(tabs: dict, meta: dict) -> str:
              f"z sd {TARGET_SD_Z[0]}-{TARGET_SD_Z[1]} (z the interval's chi-square pivot; module docstring). ± are "
              f"trial-clustered standard errors. Families meeting every target: **{int(fam['meets'].sum())} of "
              f"{len(fam)}**; family x grade cells: {int(tabs['family_grade']['meets'].sum())} of "
-             f"{len(tabs['family_grade'])}.", "",
-             "| family | n | coverage | mean z | sd z | meets |", "|---|---:|---:|---:|---:|---|"]
-    for r in fam.itertuples():
-        lines.append(f"| {r.family} | {r.n} | {fmt(r.coverage, r.coverage_se)} | {fmt(r.mean_z, r.mean_z_se, '{:+.3f}')} "
-                     f"| {fmt(r.sd_z, r.sd_z_se)} | {'yes' if r.meets else 'no'} |")
+             f"{len(tabs['family_grade'])}.", "", *table_lines(fam, ["family"])]
     for name, col in (("family_grade", "grade"), ("family_regime", "regime")):
         lines += ["", f"Per family and {col}" + (" (turn-on spread over the runs' rms standard error)" if col == "regime"
-                                                 else "") + ":", "",
-                  f"| family | {col} | n | coverage | mean z | sd z | meets |", "|---|---|---:|---:|---:|---:|---|"]
-        for r in tabs[name].to_dict("records"):
-            lines.append(f"| {r['family']} | {r[col]} | {r['n']} | {fmt(r['coverage'], r['coverage_se'])} | "
-                         f"{fmt(r['mean_z'], r['mean_z_se'], '{:+.3f}')} | {fmt(r['sd_z'], r['sd_z_se'])} | "
-                         f"{'yes' if r['meets'] else 'no'} |")
+                                                 else "") + ":", "", *table_lines(tabs[name], ["family", col])]
     lines += ["", "Definitions and truths: the docstring of benchmarks/coverage_repeatability.py."]
     return "\n".join(lines) + "\n"
 

@@ -86,6 +86,18 @@ def fmt(v, se=None, f="{:.3f}"):
     return f.format(v) + (f" ± {se:.3f}" if se is not None and np.isfinite(se) else "")
 
 
+def table_lines(t: pd.DataFrame, cols: list[str]) -> list[str]:
+    """Markdown header and rows of a summary table: ``cols`` (e.g. family, grade), n, coverage, mean z and sd z with
+    their trial-clustered standard errors, meets."""
+    lines = ["| " + " | ".join(cols) + " | n | coverage | mean z | sd z | meets |",
+             "|" + "---|" * len(cols) + "---:|---:|---:|---:|---|"]
+    for r in t.to_dict("records"):
+        lines.append("| " + " | ".join(str(r[c]) for c in cols) + f" | {r['n']} | {fmt(r['coverage'], r['coverage_se'])} | "
+                     f"{fmt(r['mean_z'], r['mean_z_se'], '{:+.3f}')} | {fmt(r['sd_z'], r['sd_z_se'])} | "
+                     f"{'yes' if r['meets'] else 'no'} |")
+    return lines
+
+
 def write_results(out: Path, tabs: dict[str, pd.DataFrame], meta: dict, text: str, records: pd.DataFrame | None) -> None:
     """``out``.md (the text), .json (meta and every table) and, when given, .records.csv (every scored estimate)."""
     out.parent.mkdir(parents=True, exist_ok=True)
