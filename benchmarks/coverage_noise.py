@@ -133,7 +133,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -144,6 +143,7 @@ from coverage_stats import (  # benchmarks/ is on sys.path
     TARGET_MEAN_Z,
     TARGET_SD_Z,
     Z95,
+    chi2_pivot_z,
     clustered,
     meets_two_sided,
     run_budgeted,
@@ -317,6 +317,8 @@ def score_noise(trial_outputs: dict) -> list[dict]:
             rows += _term_rows(o, run["noise"], label, "", TERMS)
     if o["plan"] == "markov":  # the stage's per-run bias standard errors come from a model without the GM term
         return rows
+    from assets_lib.calibration.repeatability import satterthwaite_dof
+
     rep = o["static_repeatability"]
     st = o["static_terms"]
     for r in rep[rep["quantity"] == "bias_repeatability"].itertuples():
@@ -325,14 +327,9 @@ def score_noise(trial_outputs: dict) -> list[dict]:
         if not (np.isfinite(lo) and np.isfinite(hi)):
             continue
         g = st[st["channel"] == r.channel]  # the runs the repeatability used
-        v, se2 = g["bias"].to_numpy(float), g["bias_stderr"].to_numpy(float) ** 2
-        q = len(v)
-        s2 = float(np.var(v, ddof=1))
-        vi = max(s2 - se2.mean(), 0.0) + se2
-        var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / (q - 1) ** 2
-        nu1 = 2.0 * np.mean(vi) ** 2 / var_s2
-        p = stats.chi2.cdf(nu1 * s2 / (t**2 + se2.mean()), nu1)
-        z = float(stats.norm.ppf(np.clip(p, 1e-12, 1 - 1e-12)))
+        v, se = g["bias"].to_numpy(float), g["bias_stderr"].to_numpy(float)
+        nu1 = satterthwaite_dof(v, se)  # as the stage's interval takes it
+        z = chi2_pivot_z(nu1 * float(np.var(v, ddof=1)) / (t**2 + float(np.mean(se**2))), nu1)
         rows.append(_row(o, f"{r.channel.split('_')[0]}:bias_repeatability_noise_corrected", r.channel, "all", t,
                          r.value_noise_corrected, lo, hi, z, lo <= t <= hi, "two_sided"))
     return rows

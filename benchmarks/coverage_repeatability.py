@@ -47,33 +47,16 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-from coverage_stats import clustered, meets_two_sided, run_budgeted, table_lines, write_results  # noqa: E402
+from coverage_stats import chi2_pivot_z, clustered, meets_two_sided, run_budgeted, table_lines, write_results  # noqa: E402
 from coverage_stats import TARGET_COVERAGE, TARGET_MEAN_Z, TARGET_SD_Z  # noqa: E402
 
 GRADES = ("navigation", "tactical", "consumer")
 SENSOR_INDEX = {"gyro": 0, "accel": 1}
-
-
-def _chi2_z(x: float, nu: float) -> float:
-    """Phi^-1 of F_chi2(x; nu): standard normal when x ~ chi2_nu."""
-    return float(stats.norm.ppf(np.clip(stats.chi2.cdf(x, nu), 1e-12, 1 - 1e-12)))
-
-
-def satterthwaite_nu(values: np.ndarray, stderrs: np.ndarray) -> float:
-    """nu_1 of s^2 with unequal run variances v_i = max(s^2 - mean se^2, 0) + se_i^2 (as
-    ``assets_lib.calibration.repeatability.repeatability`` computes it)."""
-    q = len(values)
-    s2 = float(np.var(values, ddof=1))
-    e2 = stderrs**2
-    vi = max(s2 - e2.mean(), 0.0) + e2
-    var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / (q - 1) ** 2
-    return float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(q - 1)
 
 
 def trial_device(seed: int, k: int, spread: float):
@@ -123,6 +106,8 @@ def trial_coefficients(seed: int, k: int, cycles: int, rate_plan: str, pos_plan:
 
 def score(dev, coefficients: pd.DataFrame, rep: pd.DataFrame, base: dict) -> list[dict]:
     """Rows for every repeatability row with finite intervals (module docstring)."""
+    from assets_lib.calibration.repeatability import satterthwaite_dof
+
     rows = []
     c = coefficients[coefficients["observable"].astype(bool)]
     runs = {k: g for k, g in c.groupby(["device_id", "sensor", "axis", "method", "coefficient"])}
@@ -145,12 +130,12 @@ def score(dev, coefficients: pd.DataFrame, rep: pd.DataFrame, base: dict) -> lis
         t_plain = math.sqrt(sigma**2 + mse2)
         if np.isfinite(r.ci_low) and np.isfinite(r.ci_high):
             rows.append(dict(common, family=fam, value=r.value, lo=r.ci_low, hi=r.ci_high, truth=t_plain,
-                             z=_chi2_z((q - 1) * s2 / t_plain**2, q - 1), covered=bool(r.ci_low <= t_plain <= r.ci_high)))
+                             z=chi2_pivot_z((q - 1) * s2 / t_plain**2, q - 1), covered=bool(r.ci_low <= t_plain <= r.ci_high)))
         lo, hi = r.noise_corrected_ci_low, r.noise_corrected_ci_high
         if np.isfinite(lo) and np.isfinite(hi):
-            nu1 = satterthwaite_nu(v, se)
+            nu1 = satterthwaite_dof(v, se)
             rows.append(dict(common, family=fam + "_noise_corrected", value=r.value_noise_corrected, lo=lo, hi=hi,
-                             truth=sigma, z=_chi2_z(nu1 * s2 / (sigma**2 + mse2), nu1), covered=bool(lo <= sigma <= hi)))
+                             truth=sigma, z=chi2_pivot_z(nu1 * s2 / (sigma**2 + mse2), nu1), covered=bool(lo <= sigma <= hi)))
     return rows
 
 

@@ -43,6 +43,13 @@ def clustered(d: pd.DataFrame) -> dict:
     return out
 
 
+def chi2_pivot_z(x: float, nu: float) -> float:
+    """Phi^-1(F_chi2(x; nu)): standard normal when x ~ chi2_nu (the z of a variance's chi-square interval)."""
+    from scipy import stats
+
+    return float(stats.norm.ppf(np.clip(stats.chi2.cdf(x, nu), 1e-12, 1 - 1e-12)))
+
+
 def run_budgeted(fn, jobs: list, workers: int = 1, budget_s: float | None = None) -> list[dict]:
     """``fn(job)`` (a list of rows) over ``jobs``, on ``workers`` processes; with ``budget_s`` no job starts after that
     many seconds (every job started runs to its end: a shared machine's honest partial run instead of a killed one)."""

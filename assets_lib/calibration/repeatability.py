@@ -105,6 +105,19 @@ def mls_difference_interval(s1: float, nu1: float, s2: float, nu2: float, confid
     return th - math.sqrt(max(vl, 0.0)), th + math.sqrt(max(vu, 0.0))
 
 
+def satterthwaite_dof(values, stderrs) -> float:
+    """[SATTERTHWAITE1946] degrees of freedom nu_1 of the sample variance s^2 of ``values`` when the runs' variances
+    v_i = sigma^2 + se_i^2 differ (sigma^2 estimated as max(s^2 - mean se^2, 0); s^2 is a quadratic form
+    x'(I - J/q)x / (q - 1) of independent normals): E(s^2) = mean(v),
+    Var(s^2) = 2 (sum v^2 (1 - 2/q) + (sum v)^2 / q^2) / (q - 1)^2, nu_1 = 2 E^2 / Var (= q - 1 if all equal)."""
+    v = np.asarray(values, float)
+    e2 = np.asarray(stderrs, float) ** 2
+    q = len(v)
+    vi = max(float(np.var(v, ddof=1)) - float(e2.mean()), 0.0) + e2
+    var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / (q - 1) ** 2
+    return float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(q - 1)
+
+
 def repeatability(values, stderrs=None, *, relative: bool = False, confidence: float = 0.95,
                   stderr_dofs=None, stderr_mean_dof: float | None = None) -> Repeatability:
     """[SEED000] eq. 23 (and [SEED003] eq. 9 when ``relative``): sample std over runs with a chi-square CI; with
@@ -133,12 +146,7 @@ def repeatability(values, stderrs=None, *, relative: bool = False, confidence: f
     c_lo = c_hi = nan
     if have_se:
         e2 = se**2
-        # [SATTERTHWAITE1946] df of s^2 when the runs' variances v_i = sigma^2 + se_i^2 differ (a quadratic form
-        # x'(I - J/q)x / (q - 1) of independent normals): E(s^2) = mean(v),
-        # Var(s^2) = 2 (sum v^2 (1 - 2/q) + (sum v)^2 / q^2) / (q - 1)^2; nu_1 = 2 E^2 / Var (= q - 1 if equal)
-        vi = max(s**2 - rms_se**2, 0.0) + e2
-        var_s2 = 2.0 * (np.sum(vi**2) * (1 - 2 / q) + np.sum(vi) ** 2 / q**2) / nu**2
-        nu1 = float(2.0 * np.mean(vi) ** 2 / var_s2) if var_s2 > 0 else float(nu)
+        nu1 = satterthwaite_dof(v, se)
         d = None if stderr_dofs is None else np.asarray(stderr_dofs, float)[ok]
         if stderr_mean_dof is not None:
             nu2 = float(stderr_mean_dof) if np.isfinite(stderr_mean_dof) and stderr_mean_dof > 0 else math.inf
